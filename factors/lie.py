@@ -1,0 +1,238 @@
+"""Batched SO(3)/SE(3) maths in GTSAM's tangent convention.
+
+Poses are homogeneous matrices ``(N, 4, 4)``; tangent vectors are ``(N, 6)`` ordered
+``xi = [omega; v]`` (rotation first), and a perturbation acts on the right:
+``T ⊕ xi = T @ Exp(xi)`` (see :mod:`factors.conventions`, which states this as code).
+
+Everything here is vectorised over the leading axis and finite for every input:
+small angles use Taylor series, and angles near pi use the quaternion form of the
+logarithm and the ``cot(theta/2)`` form of the inverse right Jacobian, both of which stay
+well conditioned there.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL = 1e-4  # below this angle the closed forms lose digits; Taylor series take over
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """``[w]x`` for ``w`` of shape ``(..., 3)`` -> ``(..., 3, 3)``, so ``[w]x @ p = w x p``."""
+    w = np.asarray(w, dtype=float)
+    out = np.zeros(w.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -w[..., 2]
+    out[..., 0, 2] = w[..., 1]
+    out[..., 1, 0] = w[..., 2]
+    out[..., 1, 2] = -w[..., 0]
+    out[..., 2, 0] = -w[..., 1]
+    out[..., 2, 1] = w[..., 0]
+    return out
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vector ``(..., 3)`` -> rotation matrix ``(..., 3, 3)``."""
+    w = np.asarray(w, dtype=float)
+    th2 = np.sum(w * w, axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
+    W = skew(w)
+    eye = np.broadcast_to(np.eye(3), W.shape)
+    return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
+
+
+def rotation_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` -> unit Hamilton quaternions ``(..., 4)`` as w, x, y, z, w >= 0.
+
+    Shepperd's method: pick the largest of the four squared components to divide by, so
+    the result is accurate for every rotation, including angles near pi.
+    """
+    R = np.asarray(R, dtype=float)
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    cand = np.stack([1.0 + tr, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], -1)
+    k = np.argmax(cand, axis=-1)
+    s = 2.0 * np.sqrt(np.maximum(np.take_along_axis(cand, k[..., None], -1)[..., 0], 1e-300))
+    q = np.empty(R.shape[:-2] + (4,))
+    d21, d02, d10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
+    s21, s02, s10 = R[..., 2, 1] + R[..., 1, 2], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 0] + R[..., 0, 1]
+    c0 = np.stack([0.25 * s, d21 / s, d02 / s, d10 / s], -1)
+    c1 = np.stack([d21 / s, 0.25 * s, s10 / s, s02 / s], -1)
+    c2 = np.stack([d02 / s, s10 / s, 0.25 * s, s21 / s], -1)
+    c3 = np.stack([d10 / s, s02 / s, s21 / s, 0.25 * s], -1)
+    q = np.where((k == 0)[..., None], c0, q)
+    q = np.where((k == 1)[..., None], c1, q)
+    q = np.where((k == 2)[..., None], c2, q)
+    q = np.where((k == 3)[..., None], c3, q)
+    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def quat_wxyz_to_rotation(q: np.ndarray) -> np.ndarray:
+    """Hamilton quaternions ``(..., 4)`` (w, x, y, z; normalised here) -> rotations ``(..., 3, 3)``."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - w * z)
+    R[..., 0, 2] = 2 * (x * z + w * y)
+    R[..., 1, 0] = 2 * (x * y + w * z)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - w * x)
+    R[..., 2, 0] = 2 * (x * z - w * y)
+    R[..., 2, 1] = 2 * (y * z + w * x)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` -> rotation vectors ``(..., 3)`` with angle in [0, pi].
+
+    Through the quaternion: ``theta = 2 atan2(|q_v|, q_w)``, accurate near 0 and near pi.
+    """
+    q = rotation_to_quat_wxyz(R)
+    qv = q[..., 1:]
+    n = np.linalg.norm(qv, axis=-1)
+    th = 2.0 * np.arctan2(n, q[..., 0])
+    small = n < 1e-12
+    scale = np.where(small, 2.0 / np.maximum(q[..., 0], 1e-300), th / np.where(small, 1.0, n))
+    return qv * scale[..., None]
+
+
+def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
+    """Inverse right Jacobian of SO(3): ``d Log(R Exp(d)) / d d`` at ``d = 0`` for ``R = Exp(w)``.
+
+    ``Jr^-1(w) = I + 1/2 [w]x + (1/theta^2 - cot(theta/2) / (2 theta)) [w]x^2``; the coefficient
+    is finite at theta = pi (where cot(pi/2) = 0).
+    """
+    w = np.asarray(w, dtype=float)
+    th2 = np.sum(w * w, axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    W = skew(w)
+    return np.eye(3) + 0.5 * W + c[..., None, None] * (W @ W)
+
+
+def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
+    """Right Jacobian of SO(3): ``Exp(w + d) ≈ Exp(w) Exp(Jr(w) d)``."""
+    w = np.asarray(w, dtype=float)
+    th2 = np.sum(w * w, axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / (ths * ths))
+    b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / (ths * ths * ths))
+    W = skew(w)
+    return np.eye(3) - a[..., None, None] * W + b[..., None, None] * (W @ W)
+
+
+def _q_left(phi: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Barfoot's ``Q(rho, phi)`` block of the SE(3) left Jacobian (batched)."""
+    th2 = np.sum(phi * phi, axis=-1)
+    th = np.sqrt(th2)
+    small = th < 1e-3
+    ths = np.where(small, 1.0, th)
+    s, c = np.sin(ths), np.cos(ths)
+    c1 = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - s) / ths**3)
+    c2 = np.where(small, 1.0 / 24.0 - th2 / 720.0, (th2 + 2.0 * c - 2.0) / (2.0 * ths**4))
+    c3 = np.where(small, 1.0 / 120.0 - th2 / 2520.0, (2.0 * ths - 3.0 * s + ths * c) / (2.0 * ths**5))
+    P, Rh = skew(phi), skew(rho)
+    PR, RP = P @ Rh, Rh @ P
+    PRP = PR @ P
+    return (
+        0.5 * Rh
+        + c1[..., None, None] * (PR + RP + PRP)
+        + c2[..., None, None] * (P @ PR + RP @ P - 3.0 * PRP)
+        + c3[..., None, None] * (PRP @ P + P @ PRP)
+    )
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """``Exp`` of tangent vectors ``(..., 6)`` = ``[omega; v]`` -> poses ``(..., 4, 4)`` (GTSAM's Expmap)."""
+    xi = np.asarray(xi, dtype=float)
+    w, v = xi[..., :3], xi[..., 3:]
+    R = so3_exp(w)
+    # translation = J_l(w) v = R J_r(w) v
+    t = np.einsum("...ij,...j->...i", R @ so3_right_jacobian(w), v)
+    T = np.zeros(xi.shape[:-1] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """``Log`` of poses ``(..., 4, 4)`` -> tangent vectors ``(..., 6)`` = ``[omega; v]`` (GTSAM's Logmap)."""
+    T = np.asarray(T, dtype=float)
+    w = so3_log(T[..., :3, :3])
+    # v = J_l(w)^-1 t = J_r(w)^-1 R^T t
+    Rt = np.einsum("...ji,...j->...i", T[..., :3, :3], T[..., :3, 3])
+    v = np.einsum("...ij,...j->...i", so3_right_jacobian_inv(w), Rt)
+    return np.concatenate([w, v], axis=-1)
+
+
+def se3_right_jacobian(xi: np.ndarray) -> np.ndarray:
+    """Right Jacobian of SE(3) in ``[omega; v]`` order (GTSAM's ``Pose3.ExpmapDerivative``), ``(..., 6, 6)``."""
+    xi = np.asarray(xi, dtype=float)
+    w, v = xi[..., :3], xi[..., 3:]
+    Jr = so3_right_jacobian(w)
+    out = np.zeros(xi.shape[:-1] + (6, 6))
+    out[..., :3, :3] = Jr
+    out[..., 3:, 3:] = Jr
+    out[..., 3:, :3] = _q_left(-w, -v)
+    return out
+
+
+def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
+    """Inverse right Jacobian of SE(3) (GTSAM's ``Pose3.LogmapDerivative`` at ``Exp(xi)``), ``(..., 6, 6)``.
+
+    ``Log(Exp(xi) Exp(d)) ≈ xi + Jr^-1(xi) d``. Block form ``[[Ji, 0], [-Ji Q Ji, Ji]]`` with
+    ``Ji = Jr^-1`` of SO(3) and ``Q = Q_left(-omega, -v)``.
+    """
+    xi = np.asarray(xi, dtype=float)
+    w, v = xi[..., :3], xi[..., 3:]
+    Ji = so3_right_jacobian_inv(w)
+    Q = _q_left(-w, -v)
+    out = np.zeros(xi.shape[:-1] + (6, 6))
+    out[..., :3, :3] = Ji
+    out[..., 3:, 3:] = Ji
+    out[..., 3:, :3] = -Ji @ Q @ Ji
+    return out
+
+
+def se3_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of poses ``(..., 4, 4)``."""
+    T = np.asarray(T, dtype=float)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_adjoint(T: np.ndarray) -> np.ndarray:
+    """Adjoint ``(..., 6, 6)`` in ``[omega; v]`` order: ``[[R, 0], [[t]x R, R]]``; ``T Exp(xi) T^-1 = Exp(Ad_T xi)``."""
+    T = np.asarray(T, dtype=float)
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    out = np.zeros(T.shape[:-2] + (6, 6))
+    out[..., :3, :3] = R
+    out[..., 3:, 3:] = R
+    out[..., 3:, :3] = skew(t) @ R
+    return out
+
+
+def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """``T ⊕ xi = T @ Exp(xi)``, batched (GTSAM's ``Pose3.retract`` with the full exponential chart)."""
+    return np.asarray(T, dtype=float) @ se3_exp(xi)
+
+
+def local(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """``T_a ⊖ T_b``-style tangent from ``T_a`` to ``T_b``: ``Log(T_a^-1 T_b)`` (GTSAM's ``localCoordinates``)."""
+    return se3_log(se3_inverse(T_a) @ np.asarray(T_b, dtype=float))

@@ -1,0 +1,33 @@
+"""The one exception type for bad input: it names the file, the row and the column."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(ValueError):
+    """Malformed or unusable input, located as precisely as the reader knows.
+
+    The message reads ``FILE: row R: column C: what is wrong`` with the parts that are known.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        file: str | Path | None = None,
+        row: int | None = None,
+        column: str | None = None,
+    ) -> None:
+        self.file = None if file is None else str(file)
+        self.row = row
+        self.column = column
+        self.reason = message
+        parts = []
+        if self.file is not None:
+            parts.append(self.file)
+        if row is not None:
+            parts.append(f"row {row}")
+        if column is not None:
+            parts.append(f"column {column!r}")
+        parts.append(message)
+        super().__init__(": ".join(parts))

@@ -1,0 +1,1 @@
+"""Noise calibration, metrics, reports and ablations."""

@@ -1,0 +1,1 @@
+"""Recorded runs and tracking results: the v1 on-disk formats."""

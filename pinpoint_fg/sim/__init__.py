@@ -1,0 +1,1 @@
+"""The simulator: scenarios and rendering of realistic recorded runs."""

@@ -1,0 +1,217 @@
+"""The five residuals of PinPoint, batched over poses, with analytic Jacobians.
+
+This module is the only implementation of the measurement maths: the GTSAM factors in
+:mod:`factors.gtsam_factors` call these functions for one pose, and the trackers call them
+for all particles at once.
+
+Every function takes poses ``cam_T_needle`` of shape ``(N, 4, 4)`` (a single ``(4, 4)`` is
+promoted to ``N = 1``) and returns the *unwhitened* residual and its Jacobian
+``d r(T ⊕ xi) / d xi`` in GTSAM's chart ``T ⊕ xi = T · Exp(xi)``, ``xi = [omega; v]``
+(:mod:`factors.conventions`). With ``T ⊕ xi``: ``R -> R (I + [omega]x)``, ``t -> t + R v``, so a
+needle-frame point ``X`` moves by ``d(R X + t) = -R [X]x omega + R v``.
+
+Degenerate geometry (documented per function) gives finite values, never NaN or inf.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from factors.lie import se3_adjoint, se3_inverse, se3_log, se3_right_jacobian_inv, skew
+
+#: Depths with |z| below this (metres) are clamped (keeping the sign) before dividing.
+MIN_DEPTH_M = 1e-6
+
+#: Scale-free regulariser of the Sampson denominator, pixels (see :func:`conic_residual`).
+SAMPSON_MAX_PX = 1e8
+
+
+def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
+    """Promote ``(4, 4)`` to ``(1, 4, 4)``; check the shape and finiteness of a pose batch."""
+    T = np.asarray(cam_T_needle, dtype=float)
+    if T.ndim == 2:
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f"cam_T_needle must have shape (N, 4, 4) or (4, 4), got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError("cam_T_needle contains NaN or infinite values")
+    return T
+
+
+def point_jacobian(cam_T_needle: np.ndarray, needle_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame point ``p = R X + t`` ``(N, 3)`` and ``dp/dxi = [-R [X]x, R]`` ``(N, 3, 6)``."""
+    T = as_pose_batch(cam_T_needle)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    X = np.asarray(needle_p, dtype=float)
+    p = R @ X + t
+    J = np.concatenate([-R @ skew(X), R], axis=2)
+    return p, J
+
+
+def keypoint_residual(
+    cam_T_needle: np.ndarray, K: np.ndarray, needle_p: np.ndarray, measured_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection residual ``pi(T X) - z`` in pixels (paper Eq. for r_key, appendix A).
+
+    ``pi(p) = (fx x/z + cx, fy y/z + cy)`` with the ideal pinhole ``K`` (``measured_px`` must be
+    undistorted). Returns ``r (N, 2)``, ``J (N, 2, 6)``.
+
+    Behind the camera (z < 0) the projection is the central mirror image and stays finite; a
+    point in the camera plane has its depth clamped to ``±MIN_DEPTH_M``. Trackers reject
+    poses with the needle behind the camera separately (they are not image-consistent).
+    """
+    K = np.asarray(K, dtype=float)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    p, Jp = point_jacobian(cam_T_needle, needle_p)
+    z = p[:, 2]
+    z = np.where(np.abs(z) < MIN_DEPTH_M, np.where(z < 0, -MIN_DEPTH_M, MIN_DEPTH_M), z)
+    iz = 1.0 / z
+    u = fx * p[:, 0] * iz + cx
+    v = fy * p[:, 1] * iz + cy
+    r = np.stack([u, v], axis=1) - np.asarray(measured_px, dtype=float)
+    Jpi = np.zeros((p.shape[0], 2, 3))
+    Jpi[:, 0, 0] = fx * iz
+    Jpi[:, 0, 2] = -fx * p[:, 0] * iz * iz
+    Jpi[:, 1, 1] = fy * iz
+    Jpi[:, 1, 2] = -fy * p[:, 1] * iz * iz
+    return r, Jpi @ Jp
+
+
+def conic_residual(
+    cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sampson distance (pixels) of each backbone pixel to the image conic of the needle circle.
+
+    ``H = K [r1 r2 t]`` maps the needle plane to the image; with ``A = adj(H)`` (the adjugate,
+    ``H^-1 ∝ A``) the conic is ``C = A^T Q A``, ``Q = diag(1, 1, -r^2)`` (paper Eq. for C(T)).
+    For a pixel ``x = (u, v, 1)``: ``y = A x``, ``f = x^T C x = y1^2 + y2^2 - r^2 y3^2``,
+    ``g = grad_(u,v) f = 2 (A^T Q y)_{1:2}`` (image coordinates only — the paper's 3-vector norm
+    is a slip, DESIGN.md), and the residual is ``s = f / |g|``.
+
+    The Sampson distance is invariant to the scale of ``C``, so ``A`` is normalised per pose to
+    unit Frobenius norm (its derivative then drops out of ``ds``). The denominator is
+    regularised without a scale: ``s = f |g| / (|g|^2 + (f / D)^2)`` with
+    ``D = SAMPSON_MAX_PX``. It differs from ``f / |g|`` by a relative ``(s / D)^2`` (< 1e-12 for
+    any pixel within 100 px of the conic) and stays finite where ``g = 0`` — at the conic's
+    centre, and on the double line an edge-on needle projects to (``H`` singular, ``A`` rank 1,
+    ``C = l l^T``) — where such pixels read 0 (0/0 is defined as 0). ``|s|`` never exceeds
+    ``D / 2``. The circle is the full circle, not the arc (the paper's model). A circle behind
+    the camera projects to the same conic: this residual cannot see cheirality.
+
+    ``points_px`` ``(M, 2)`` are undistorted pixels. Returns ``r (N, M)``, ``J (N, M, 6)``.
+    """
+    T = as_pose_batch(cam_T_needle)
+    K = np.asarray(K, dtype=float)
+    pts = np.asarray(points_px, dtype=float)
+    N, M = T.shape[0], pts.shape[0]
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    h1 = R[:, :, 0] @ K.T
+    h2 = R[:, :, 1] @ K.T
+    h3 = t @ K.T
+    # dh/dxi (N, 3, 6): d(R e_k) = -R [e_k]x omega, dt = R v
+    KR = K @ R
+    e = np.eye(3)
+    Dh1 = np.concatenate([-KR @ skew(e[0]), np.zeros((N, 3, 3))], axis=2)
+    Dh2 = np.concatenate([-KR @ skew(e[1]), np.zeros((N, 3, 3))], axis=2)
+    Dh3 = np.concatenate([np.zeros((N, 3, 3)), KR], axis=2)
+    # adjugate rows a1 = h2 x h3, a2 = h3 x h1, a3 = h1 x h2 and their Jacobians
+    a1, a2, a3 = np.cross(h2, h3), np.cross(h3, h1), np.cross(h1, h2)
+    S1, S2, S3 = skew(h1), skew(h2), skew(h3)
+    Da1 = -S3 @ Dh2 + S2 @ Dh3
+    Da2 = -S1 @ Dh3 + S3 @ Dh1
+    Da3 = -S2 @ Dh1 + S1 @ Dh2
+    A = np.stack([a1, a2, a3], axis=1)  # (N, 3, 3)
+    DA = np.stack([Da1, Da2, Da3], axis=1)  # (N, 3, 3, 6): row i, component k, xi
+    scale = 1.0 / np.maximum(np.linalg.norm(A, axis=(1, 2)), 1e-300)
+    A = A * scale[:, None, None]
+    DA = DA * scale[:, None, None, None]
+
+    x = np.concatenate([pts, np.ones((M, 1))], axis=1)  # (M, 3)
+    q = np.array([1.0, 1.0, -(float(radius_m) ** 2)])
+    y = np.einsum("nik,mk->nmi", A, x)  # (N, M, 3)
+    Dy = np.einsum("nikd,mk->nmid", DA, x)  # (N, M, 3, 6)
+    qy = y * q
+    f = np.sum(qy * y, axis=2)  # (N, M)
+    Df = 2.0 * np.einsum("nmi,nmid->nmd", qy, Dy)
+    A2 = A[:, :, :2]  # (N, 3, 2): first two components of each row
+    g = 2.0 * np.einsum("nmi,nij->nmj", qy, A2)  # (N, M, 2)
+    Dg = 2.0 * (
+        np.einsum("nmid,nij->nmjd", Dy * q[None, None, :, None], A2) + np.einsum("nmi,nijd->nmjd", qy, DA[:, :, :2, :])
+    )
+    g2 = np.sum(g * g, axis=2)
+    gn = np.sqrt(g2)
+    f2d = (f / SAMPSON_MAX_PX) ** 2
+    den = g2 + f2d
+    ok = den > 0
+    iden = np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
+    r = f * gn * iden
+    # s = f |g| / den:  ds = df (|g| - 2 f^2 |g| / D^2 / den) / den + d|g| f (1 - 2 g^2 / den) / den
+    gdg = np.einsum("nmj,nmjd->nmd", g, Dg)
+    safe_gn = np.where(gn > 0, gn, 1.0)
+    dgn = np.where((gn > 0)[..., None], gdg / safe_gn[..., None], 0.0)
+    c_f = gn * (1.0 - 2.0 * f2d * iden) * iden
+    c_g = f * (1.0 - 2.0 * g2 * iden) * iden
+    J = Df * c_f[..., None] + dgn * c_g[..., None]
+    return r, J
+
+
+def grasp_position_residual(
+    cam_T_needle: np.ndarray, needle_p_grasp: np.ndarray, cam_p_grasp: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Grasp position ``T X_g - p_g`` in metres, camera axes (paper Eq. for r_p). ``(N, 3), (N, 3, 6)``."""
+    p, J = point_jacobian(cam_T_needle, needle_p_grasp)
+    return p - np.asarray(cam_p_grasp, dtype=float), J
+
+
+def grasp_perpendicular_residual(
+    cam_T_needle: np.ndarray, needle_t_grasp: np.ndarray, cam_z_grasper: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Grasp perpendicularity ``z_g . (R t_g)`` (unitless; paper Eq. for r_perp). ``(N, 1), (N, 1, 6)``.
+
+    ``t_g`` and ``z_g`` are normalised here, so ``R t_g`` is already unit length and the
+    paper's normalisation has zero derivative. ``d(z^T R t) = -z^T R [t]x omega``; translation
+    does not enter.
+    """
+    T = as_pose_batch(cam_T_needle)
+    tg = np.asarray(needle_t_grasp, dtype=float)
+    tg = tg / np.linalg.norm(tg)
+    zg = np.asarray(cam_z_grasper, dtype=float)
+    zg = zg / np.linalg.norm(zg)
+    R = T[:, :3, :3]
+    r = (R @ tg) @ zg
+    Jw = -np.einsum("i,nij->nj", zg, R @ skew(tg))
+    J = np.concatenate([Jw, np.zeros((T.shape[0], 3))], axis=1)
+    return r[:, None], J[:, None, :]
+
+
+def motion_residual(
+    cam_T_prev: np.ndarray, cam_T_cur: np.ndarray, cam_delta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Motion residual ``Log((D T_prev)^-1 T_cur)`` (6, tangent ``[omega; v]``), D = grasper motion.
+
+    ``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` moves camera-frame points with the grasper.
+    With ``E = (D T_prev)^-1 T_cur`` and ``r = Log(E)``:
+    ``dr/dxi_cur = Jr^-1(r)`` and ``dr/dxi_prev = -Jr^-1(r) Ad_{E^-1}`` (right Jacobians of SE(3)).
+    Finite for every pose, including rotation angles at pi. ``cam_delta`` is ``(4, 4)`` or ``(N, 4, 4)``.
+    Returns ``r (N, 6)``, ``J_prev (N, 6, 6)``, ``J_cur (N, 6, 6)``.
+    """
+    Tp = as_pose_batch(cam_T_prev)
+    Tc = as_pose_batch(cam_T_cur)
+    D = np.asarray(cam_delta, dtype=float)
+    E = se3_inverse(D @ Tp) @ Tc
+    r = se3_log(E)
+    Jinv = se3_right_jacobian_inv(r)
+    J_cur = Jinv
+    J_prev = -Jinv @ se3_adjoint(se3_inverse(E))
+    return r, J_prev, J_cur
+
+
+def pose_prior_residual(cam_T_needle: np.ndarray, cam_T_mean: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian pose prior residual ``Log(T_mean^-1 T)`` with exact Jacobian ``Jr^-1(r)``. ``(N, 6), (N, 6, 6)``.
+
+    Used for the prior that holds what a sliding window marginalised. (GTSAM's
+    ``PriorFactorPose3`` uses an identity Jacobian instead; this one is exact.)
+    """
+    T = as_pose_batch(cam_T_needle)
+    r = se3_log(se3_inverse(np.asarray(cam_T_mean, dtype=float)) @ T)
+    return r, se3_right_jacobian_inv(r)

@@ -1,0 +1,397 @@
+"""The paper's evaluation metrics (§V, "Evaluation Metrics"), as pure vectorised functions.
+
+Poses are homogeneous ``cam_T_needle`` matrices; a batch of frames is ``(F, 4, 4)`` and a
+batch of particle sets is ``(F, N, 4, 4)`` (frame axis first, particle axis next). Tangent
+vectors follow GTSAM: ``xi = [omega; v]`` with ``T_i = T_ref · Exp(xi)``.
+
+Units. The functions that take raw errors (:func:`nll_score`, :func:`interval_score`) are
+unit-agnostic: ``err``, ``sigma``, ``low`` and ``upp`` must share one unit. :func:`summarize_errors`
+reports translation in millimetres and rotation in degrees and evaluates NLL-S and the
+interval score in those units, as the paper's Tables II and III do (the NLL-S value depends
+on the unit through ``log sigma``; these units make our numbers comparable with the paper's).
+
+Uncertainty -> Gaussian sigma (one convention, used everywhere here). The paper scores an
+error magnitude ``err`` under ``err ~ N(0, sigma^2)`` with sigma "from the predicted
+uncertainty", which is reported as the 95th percentile ``q95`` of the particles' error
+magnitudes. We read ``q95`` as the 95 % point of ``|err|`` under that same one-dimensional
+model, i.e. the half-width of a central 95 % interval of ``N(0, sigma^2)``:
+``sigma = q95 / z_0.975 = q95 / 1.95996``. (The chi-distribution alternative, 2.796 for a
+3-vector's norm, would model each axis separately; NLL-S as the paper writes it is
+one-dimensional, so the one-dimensional quantile is the consistent choice.) The matching
+prediction interval of a magnitude for the interval score is ``[0, q95]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from factors.lie import local, so3_log
+from pinpoint_fg.errors import InputError
+
+Z_975 = 1.959963984540054
+"""Standard-normal 97.5 % point: ``q95 = Z_975 · sigma`` for ``|err|`` with ``err ~ N(0, sigma^2)``."""
+
+SIGMA_FLOOR = 1e-9
+"""Smallest sigma used by :func:`nll_score`, in the unit of ``err`` (a zero spread scores finitely)."""
+
+_AXES = ("x", "y", "z")
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _poses(name: str, T: np.ndarray, min_batch_dims: int = 0) -> np.ndarray:
+    """``T`` as a float array of shape ``(..., 4, 4)`` with at least ``min_batch_dims`` leading axes."""
+    try:
+        T = np.asarray(T, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be a numeric array of 4x4 poses ({exc})", column=name) from None
+    if T.ndim < 2 + min_batch_dims or T.shape[-2:] != (4, 4):
+        want = "(..., N, 4, 4)" if min_batch_dims else "(..., 4, 4)"
+        raise InputError(f"{name} must have shape {want}, got {T.shape}", column=name)
+    return T
+
+
+def _finite_rows(T: np.ndarray) -> np.ndarray:
+    """Mask ``(...)`` of poses whose 16 entries are all finite."""
+    return np.all(np.isfinite(T), axis=(-2, -1))
+
+
+# ----------------------------------------------------------------------------- pose errors
+
+
+@dataclass(frozen=True)
+class PoseErrors:
+    """Per-frame errors of estimated poses against ground truth; NaN where a pose is not finite."""
+
+    trans_m: np.ndarray
+    """(F,) ``||t - t_gt||`` in metres (error of the needle origin, the circle centre)."""
+    rot_rad: np.ndarray
+    """(F,) geodesic angle ``arccos((tr(R_gt^T R) - 1) / 2)`` in radians, in [0, pi]."""
+    trans_axes_m: np.ndarray
+    """(F, 3) ``|t - t_gt|`` per camera axis (x right, y down, z forward), metres."""
+    rot_axes_rad: np.ndarray
+    """(F, 3) ``|Log(R R_gt^T)|`` per camera axis, radians; its row norm equals ``rot_rad``."""
+
+
+def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> PoseErrors:
+    """Translation and rotation errors of ``T_est`` (F, 4, 4) against ``T_gt`` (F, 4, 4).
+
+    * ``trans_m = ||t - t_gt||`` and ``trans_axes_m = |t - t_gt|`` (camera axes).
+    * ``rot_rad`` is the paper's ``arccos((tr(R_gt^T R) - 1) / 2)``, evaluated as the norm of
+      ``Log(R_gt^T R)`` through the quaternion (``2 atan2(|q_v|, q_w)``). That is the same angle,
+      but accurate everywhere: the arccos form loses all digits below ~1e-8 rad (its argument
+      rounds to 1) and is ill-conditioned near pi.
+    * ``rot_axes_rad = |Log(R R_gt^T)|``: the error rotation ``R = Exp(delta) R_gt`` written as a
+      rotation vector ``delta`` in the CAMERA frame, component-wise absolute (the X/Y/Z rotation
+      columns of the paper's Table II). ``R R_gt^T = R_gt (R_gt^T R) R_gt^T`` is conjugate to
+      ``R_gt^T R``, so ``||delta|| = rot_rad`` exactly, for every angle.
+
+    Either input may also be a single (4, 4) pose (broadcast). Frames where either pose has a
+    non-finite entry (e.g. no ground truth) get NaN errors instead of an exception.
+    """
+    T_est = _poses("T_est", T_est)
+    T_gt = _poses("T_gt", T_gt)
+    try:
+        shape = np.broadcast_shapes(T_est.shape, T_gt.shape)
+    except ValueError:
+        raise InputError(f"T_est {T_est.shape} and T_gt {T_gt.shape} hold different frame counts") from None
+    T_est = np.broadcast_to(T_est, shape)
+    T_gt = np.broadcast_to(T_gt, shape)
+    ok = _finite_rows(T_est) & _finite_rows(T_gt)
+    eye = np.eye(4)
+    T_est = np.where(ok[..., None, None], T_est, eye)
+    T_gt = np.where(ok[..., None, None], T_gt, eye)
+
+    dt = T_est[..., :3, 3] - T_gt[..., :3, 3]
+    R, R_gt = T_est[..., :3, :3], T_gt[..., :3, :3]
+    w_body = so3_log(np.swapaxes(R_gt, -1, -2) @ R)
+    w_cam = so3_log(R @ np.swapaxes(R_gt, -1, -2))
+
+    nan = np.where(ok, 0.0, np.nan)
+    return PoseErrors(
+        trans_m=np.linalg.norm(dt, axis=-1) + nan,
+        rot_rad=np.linalg.norm(w_body, axis=-1) + nan,
+        trans_axes_m=np.abs(dt) + nan[..., None],
+        rot_axes_rad=np.abs(w_cam) + nan[..., None],
+    )
+
+
+# ----------------------------------------------------------------------------- weighted statistics
+
+
+def _weights(weights: np.ndarray | None, shape: tuple[int, ...], name: str = "weights") -> np.ndarray:
+    """Normalised non-negative weights of ``shape`` (uniform when ``None``); each row sums to 1."""
+    if weights is None:
+        return np.full(shape, 1.0 / shape[-1])
+    w = np.asarray(weights, dtype=float)
+    if w.shape != shape:
+        try:
+            w = np.broadcast_to(w, shape)
+        except ValueError:
+            raise InputError(f"{name} has shape {w.shape}, expected {shape}", column=name) from None
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise InputError(f"{name} must be finite and non-negative", column=name)
+    total = w.sum(axis=-1, keepdims=True)
+    if np.any(total <= 0):
+        raise InputError(f"{name}: a set of weights sums to zero", column=name)
+    return w / total
+
+
+def weighted_quantile(values: np.ndarray, weights: np.ndarray | None, q: float) -> np.ndarray:
+    """Weighted ``q``-quantile of ``values`` (..., N) along the last axis -> (...).
+
+    Definition: the inverse of the weighted empirical CDF,
+    ``Q(q) = min { x_(k) : W_k >= q · W_N }``, where ``x_(1) <= ... <= x_(N)`` are the sorted values
+    and ``W_k`` the cumulative sum of their weights (weights ``None`` = equal). For ``q = 0`` the
+    smallest value with positive weight is returned. With equal weights this is exactly numpy's
+    ``np.quantile(..., method="inverted_cdf")``: weights are divided by their maximum, so equal
+    weights become exact ones, ``W_k = k`` exactly, and the comparison ``k >= q · N`` is the one numpy
+    makes. The result is always one of the values (no interpolation).
+    """
+    v = np.asarray(values, dtype=float)
+    if v.ndim == 0 or v.shape[-1] == 0:
+        raise InputError("weighted_quantile needs at least one value along the last axis", column="values")
+    if not np.all(np.isfinite(v)):
+        raise InputError("weighted_quantile: values must be finite", column="values")
+    if not (0.0 <= float(q) <= 1.0):
+        raise InputError(f"quantile level q must lie in [0, 1], got {q}", column="q")
+    w = _weights(weights, v.shape)
+    w = w / w.max(axis=-1, keepdims=True)
+    order = np.argsort(v, axis=-1, kind="stable")
+    v_sorted = np.take_along_axis(v, order, axis=-1)
+    w_sorted = np.take_along_axis(w, order, axis=-1)
+    cum = np.cumsum(w_sorted, axis=-1)
+    target = float(q) * cum[..., -1:]
+    hit = (cum >= target) & (w_sorted > 0)
+    k = np.argmax(hit, axis=-1)
+    return np.take_along_axis(v_sorted, k[..., None], axis=-1)[..., 0]
+
+
+@dataclass(frozen=True)
+class TangentSpread:
+    """Spread of a particle set around a reference pose, in the reference's tangent space."""
+
+    q95_trans_m: np.ndarray
+    """(...) weighted 95th percentile of ``||v_i||`` (translation part of ``xi_i``), metres."""
+    q95_rot_rad: np.ndarray
+    """(...) weighted 95th percentile of ``||omega_i||`` (rotation part of ``xi_i``), radians."""
+    mean_xi: np.ndarray
+    """(..., 6) weighted mean ``sum_i w_i xi_i``, order ``[omega; v]``."""
+    cov_xi: np.ndarray
+    """(..., 6, 6) weighted covariance ``sum_i w_i (xi_i - mean)(xi_i - mean)^T`` (weights sum to 1)."""
+
+
+def tangent_spread(
+    T_ref: np.ndarray,
+    particles_T: np.ndarray,
+    weights: np.ndarray | None = None,
+    q: float = 0.95,
+) -> TangentSpread:
+    """Uncertainty of a particle set (paper §IV "Uncertainty Estimation").
+
+    ``xi_i = Log(T_ref^-1 T_i) = [omega_i; v_i]`` (GTSAM order, :func:`factors.lie.local`);
+    ``q95_trans_m`` / ``q95_rot_rad`` are the weighted ``q``-quantiles (:func:`weighted_quantile`)
+    of ``||v_i||`` and ``||omega_i||``; the covariance is the weighted (biased, normalised-weight)
+    second moment about the weighted mean, as the paper writes it.
+
+    Shapes: ``particles_T`` (F, N, 4, 4) with ``T_ref`` (F, 4, 4) or one (4, 4) for every frame;
+    a single set (N, 4, 4) with ``T_ref`` (4, 4) gives scalar quantiles. ``weights`` (F, N) or
+    (N,), ``None`` = equal; they are normalised per set.
+    """
+    P = _poses("particles_T", particles_T, min_batch_dims=1)
+    T_ref = _poses("T_ref", T_ref)
+    mismatch = f"T_ref {T_ref.shape} does not match particles_T {P.shape}"
+    if T_ref.ndim > P.ndim - 1:
+        raise InputError(mismatch, column="T_ref")
+    try:
+        batch = np.broadcast_shapes(T_ref.shape[:-2], P.shape[:-3])
+    except ValueError:
+        raise InputError(mismatch, column="T_ref") from None
+    if batch != P.shape[:-3]:
+        raise InputError(mismatch, column="T_ref")
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T_ref))):
+        raise InputError("tangent_spread: poses must be finite", column="particles_T")
+    w = _weights(weights, P.shape[:-2])
+    xi = local(T_ref[..., None, :, :], P)  # (..., N, 6)
+    r_rot = np.linalg.norm(xi[..., :3], axis=-1)
+    r_trans = np.linalg.norm(xi[..., 3:], axis=-1)
+    mean = np.einsum("...n,...nk->...k", w, xi)
+    d = xi - mean[..., None, :]
+    cov = np.einsum("...n,...nj,...nk->...jk", w, d, d)
+    return TangentSpread(
+        q95_trans_m=weighted_quantile(r_trans, w, q),
+        q95_rot_rad=weighted_quantile(r_rot, w, q),
+        mean_xi=mean,
+        cov_xi=cov,
+    )
+
+
+# ----------------------------------------------------------------------------- scoring rules
+
+
+def sigma_from_q95(q95: np.ndarray) -> np.ndarray:
+    """Gaussian sigma of an error magnitude from its predicted 95th percentile: ``q95 / Z_975``.
+
+    See the module docstring for why the one-dimensional 97.5 % point (1.95996) is used.
+    """
+    return np.asarray(q95, dtype=float) / Z_975
+
+
+def nll_score(err: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """NLL-S: ``0.5 log(2 pi sigma^2) + err^2 / (2 sigma^2)``, element-wise (broadcast).
+
+    ``sigma`` is floored at :data:`SIGMA_FLOOR` (1e-9 in the unit of ``err``), so a particle set
+    with zero spread scores finitely (and very badly unless ``err`` is ~0 as well).
+    """
+    err = np.asarray(err, dtype=float)
+    sigma = np.maximum(np.asarray(sigma, dtype=float), SIGMA_FLOOR)
+    return 0.5 * np.log(2.0 * np.pi * sigma**2) + err**2 / (2.0 * sigma**2)
+
+
+def interval_score(err: np.ndarray, low: np.ndarray, upp: np.ndarray, alpha: float = 0.05) -> np.ndarray:
+    """Interval score (Gneiting & Raftery) of the central ``1 - alpha`` interval ``[low, upp]``.
+
+    ``IS = (upp - low) + 2/alpha · max(0, low - err) + 2/alpha · max(0, err - upp)``, element-wise.
+    For an error magnitude with predicted 95th percentile ``q95`` the interval is ``[0, q95]``.
+    """
+    if not (0.0 < alpha < 1.0):
+        raise InputError(f"alpha must lie in (0, 1), got {alpha}", column="alpha")
+    err = np.asarray(err, dtype=float)
+    low = np.asarray(low, dtype=float)
+    upp = np.asarray(upp, dtype=float)
+    if np.any(low > upp):
+        raise InputError("interval_score: low exceeds upp", column="low")
+    return (
+        (upp - low) + (2.0 / alpha) * np.maximum(0.0, low - err) + (2.0 / alpha) * np.maximum(0.0, err - upp)
+    )
+
+
+def scores_from_q95(err: np.ndarray, q95: np.ndarray, alpha: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """``(NLL-S, IS)`` of error magnitudes ``err`` given predicted ``q95`` (same unit, broadcast).
+
+    ``sigma = q95 / Z_975`` for NLL-S; interval ``[0, q95]`` for the interval score.
+    """
+    q95 = np.asarray(q95, dtype=float)
+    return nll_score(err, sigma_from_q95(q95)), interval_score(err, np.zeros_like(q95), q95, alpha)
+
+
+# ----------------------------------------------------------------------------- summaries
+
+
+def _mean_std(x: np.ndarray) -> tuple[float, float]:
+    """Mean and population standard deviation (ddof = 0); NaN for an empty array."""
+    if x.size == 0:
+        return float("nan"), float("nan")
+    return float(np.mean(x)), float(np.std(x))
+
+
+def summarize_errors(
+    errors: PoseErrors,
+    q95_trans_m: np.ndarray | None = None,
+    q95_rot_rad: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    alpha: float = 0.05,
+) -> dict[str, float]:
+    """One row of the paper's Table II / III from per-frame errors and predicted q95 spreads.
+
+    Frames used: ``mask`` (F,) bool (e.g. "has ground truth"; default all) AND finite errors.
+    Accuracy keys (translation in mm, rotation in degrees; std is the population std, ddof=0):
+    ``frames``, ``trans_mean_mm``, ``trans_std_mm``, ``rot_mean_deg``, ``rot_std_deg`` and per axis
+    ``trans_{x,y,z}_{mean,std}_mm``, ``rot_{x,y,z}_{mean,std}_deg`` (camera axes, see
+    :class:`PoseErrors`). Uncertainty keys, averaged over the used frames whose q95 is finite
+    (``uncertainty_frames_trans`` / ``_rot`` count them; NaN when none or when q95 is ``None``):
+    ``trans_q95_mm``, ``rot_q95_deg`` (mean predicted q95), ``nlls_trans``, ``nlls_rot`` (mean NLL-S
+    with ``sigma = q95 / 1.96``, in mm / deg), ``is_trans``, ``is_rot`` (mean interval score of
+    ``[0, q95]`` at ``alpha``, in mm / deg).
+    """
+    F = np.shape(errors.trans_m)[0] if np.ndim(errors.trans_m) else 1
+    trans = np.reshape(np.asarray(errors.trans_m, dtype=float), (F,))
+    rot = np.reshape(np.asarray(errors.rot_rad, dtype=float), (F,))
+    t_ax = np.reshape(np.asarray(errors.trans_axes_m, dtype=float), (F, 3))
+    r_ax = np.reshape(np.asarray(errors.rot_axes_rad, dtype=float), (F, 3))
+    use = np.isfinite(trans) & np.isfinite(rot)
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != (F,):
+            raise InputError(f"mask has shape {m.shape}, expected ({F},)", column="mask")
+        use &= m.astype(bool)
+
+    out: dict[str, float] = {"frames": int(use.sum())}
+    out["trans_mean_mm"], out["trans_std_mm"] = _mean_std(1e3 * trans[use])
+    out["rot_mean_deg"], out["rot_std_deg"] = _mean_std(np.degrees(rot[use]))
+    for j, ax in enumerate(_AXES):
+        out[f"trans_{ax}_mean_mm"], out[f"trans_{ax}_std_mm"] = _mean_std(1e3 * t_ax[use, j])
+    for j, ax in enumerate(_AXES):
+        out[f"rot_{ax}_mean_deg"], out[f"rot_{ax}_std_deg"] = _mean_std(np.degrees(r_ax[use, j]))
+
+    for key, err, q95, scale, unit in (
+        ("trans", trans, q95_trans_m, 1e3, "mm"),
+        ("rot", rot, q95_rot_rad, np.degrees(1.0), "deg"),
+    ):
+        if q95 is None:
+            sel = np.zeros(F, dtype=bool)
+            q = np.full(F, np.nan)
+        else:
+            q = np.asarray(q95, dtype=float)
+            if q.shape != (F,):
+                raise InputError(f"q95_{key} has shape {q.shape}, expected ({F},)", column=f"q95_{key}")
+            if np.any(q[np.isfinite(q)] < 0):
+                raise InputError(f"q95_{key} must be non-negative", column=f"q95_{key}")
+            sel = use & np.isfinite(q)
+        out[f"uncertainty_frames_{key}"] = int(sel.sum())
+        if sel.any():
+            e, qq = scale * err[sel], scale * q[sel]
+            nll, isc = scores_from_q95(e, qq, alpha)
+            out[f"{key}_q95_{unit}"] = float(np.mean(qq))
+            out[f"nlls_{key}"] = float(np.mean(nll))
+            out[f"is_{key}"] = float(np.mean(isc))
+        else:
+            out[f"{key}_q95_{unit}"] = float("nan")
+            out[f"nlls_{key}"] = float("nan")
+            out[f"is_{key}"] = float("nan")
+    return out
+
+
+def breakdown_by_label(
+    values: np.ndarray, labels: np.ndarray | list[str | None], mask: np.ndarray | None = None
+) -> dict[str, float]:
+    """Mean of ``values`` (F,) per label (F,) (e.g. occlusion ``none`` / ``partial`` / ``heavy``).
+
+    Frames whose label is ``None`` or ``""`` (unknown), whose value is not finite, or that ``mask``
+    (F,) excludes are skipped. Keys are the labels present, sorted; labels with no usable frame
+    are absent.
+    """
+    v = np.asarray(values, dtype=float).reshape(-1)
+    lab = list(labels)
+    if len(lab) != v.shape[0]:
+        raise InputError(f"{len(lab)} labels for {v.shape[0]} values", column="labels")
+    use = np.isfinite(v)
+    if mask is not None:
+        m = np.asarray(mask).reshape(-1)
+        if m.shape != v.shape:
+            raise InputError(f"mask has shape {m.shape}, expected {v.shape}", column="mask")
+        use &= m.astype(bool)
+    known = np.array([x is not None and str(x) != "" for x in lab], dtype=bool)
+    use &= known
+    names = np.array([str(x) if k else "" for x, k in zip(lab, known, strict=True)], dtype=object)
+    out: dict[str, float] = {}
+    for name in sorted(set(names[use].tolist())):
+        out[name] = float(np.mean(v[use & (names == name)]))
+    return out
+
+
+def accuracy_multiple(method_mean: np.ndarray | float, floor_mean: np.ndarray | float) -> np.ndarray | float:
+    """How many times the accuracy floor a method's mean error is: ``method_mean / floor_mean``.
+
+    The floor is the mean error of the per-frame MAP solved from the truth (DESIGN.md
+    §Evaluation): 1.0 means the method is as accurate as the model allows, larger is worse.
+    Element-wise; a zero floor gives ``inf`` (or NaN for 0/0) rather than an exception.
+    """
+    m = np.asarray(method_mean, dtype=float)
+    f = np.asarray(floor_mean, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = m / f
+    return float(r) if r.ndim == 0 else r

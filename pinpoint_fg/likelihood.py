@@ -1,0 +1,241 @@
+"""One frame's measurement likelihood, batched over pose hypotheses.
+
+``FrameLikelihood(observation, model)`` stacks the whitened residuals of every enabled
+measurement of that frame — tip/tail keypoints, dense backbone (conic), grasp position,
+grasp perpendicularity — for ``N`` poses at once:
+
+    e_k(T) = W_k (r_k(T) - mu_k),    nll(T) = 1/2 sum_k |e_k(T)|^2
+
+with ``r_k`` from :mod:`factors.residuals` (the only copy of the maths), ``mu_k`` the
+calibrated bias and ``W_k^T W_k = Sigma_k^-1`` (:mod:`pinpoint_fg.noise`). Its Gauss-Newton
+form gives, per pose, the gradient of ``nll`` and ``H = J^T J`` in GTSAM's right chart.
+``gtsam_factors(key)`` returns the same terms as GTSAM factors (used by the MAP baseline and
+by the tests that prove the two paths equal).
+
+Cheirality: the conic cannot tell a circle behind the camera from one in front; poses whose
+needle centre is closer than ``min_depth_m`` (or behind) get an additional quadratic penalty
+``1/2 ((min_depth_m - z) / 1 mm)^2`` so no hypothesis settles there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from factors import residuals as res
+from factors.geometry import NeedleModel, PinholeCamera
+from factors.gtsam_factors import (
+    ConicFactor,
+    GraspPerpendicularFactor,
+    GraspPositionFactor,
+    KeypointFactor,
+)
+from pinpoint_fg.noise import NoiseConfig, ResidualNoise
+from pinpoint_fg.observation import Observation
+
+#: Names accepted by ``--disable`` and what they switch off.
+SWITCH_NAMES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
+
+
+@dataclass(frozen=True)
+class Switches:
+    """Which likelihood terms are used (paper Table III ablations)."""
+
+    dense: bool = True
+    """Backbone pixels vs the projected conic."""
+    tip: bool = True
+    """Tip keypoint."""
+    tail: bool = True
+    """Tail keypoint."""
+    grasp_position: bool = True
+    """Grasp position from kinematics."""
+    grasp_perpendicular: bool = True
+    """Grasper axis perpendicular to the needle tangent at the grasp point."""
+    motion: bool = True
+    """Motion model: the grasper's measured motion moves the needle (else a random walk)."""
+
+    @classmethod
+    def from_disabled(cls, disabled: tuple[str, ...] | list[str] = ()) -> Switches:
+        """Build from ``--disable`` names; ``sparse`` turns off both keypoints."""
+        off = set(disabled)
+        unknown = off - set(SWITCH_NAMES)
+        if unknown:
+            raise ValueError(f"unknown likelihood switch(es) {sorted(unknown)}; choose from {SWITCH_NAMES}")
+        return cls(
+            dense="dense" not in off,
+            tip=not ({"sparse", "tip"} & off),
+            tail=not ({"sparse", "tail"} & off),
+            grasp_position="grasp-position" not in off,
+            grasp_perpendicular="grasp-perpendicular" not in off,
+            motion="motion" not in off,
+        )
+
+    def disabled(self) -> tuple[str, ...]:
+        """The ``--disable`` names equivalent to these switches."""
+        out = []
+        if not self.dense:
+            out.append("dense")
+        if not self.tip and not self.tail:
+            out.append("sparse")
+        elif not self.tip:
+            out.append("tip")
+        elif not self.tail:
+            out.append("tail")
+        if not self.grasp_position:
+            out.append("grasp-position")
+        if not self.grasp_perpendicular:
+            out.append("grasp-perpendicular")
+        if not self.motion:
+            out.append("motion")
+        return tuple(out)
+
+
+@dataclass(frozen=True)
+class MeasurementModel:
+    """Everything a frame's likelihood needs besides the observation."""
+
+    camera: PinholeCamera
+    """Camera (ideal pinhole K is used; observations are undistorted)."""
+    needle: NeedleModel
+    """Needle geometry."""
+    noise: NoiseConfig = NoiseConfig()
+    """Bias and covariance of every residual."""
+    switches: Switches = Switches()
+    """Enabled terms."""
+    min_depth_m: float = 0.003
+    """Needle centres closer than this (or behind the camera) are penalised."""
+
+
+@dataclass(frozen=True)
+class _Term:
+    name: str
+    W: np.ndarray  # (d, d) whitening
+    mean: np.ndarray  # (d,)
+
+
+class FrameLikelihood:
+    """Whitened residual stack of one frame for ``N`` poses (see module docstring)."""
+
+    def __init__(self, observation: Observation, model: MeasurementModel) -> None:
+        self.observation = observation
+        self.model = model
+        sw = model.switches
+        nd = model.needle
+        self._K = model.camera.K
+        self._terms: list[tuple[str, object]] = []
+        o = observation
+        if sw.tip and o.tip_px is not None:
+            self._terms.append(("tip", o.tip_px))
+        if sw.tail and o.tail_px is not None:
+            self._terms.append(("tail", o.tail_px))
+        if sw.dense and o.backbone_px is not None and len(o.backbone_px) > 0:
+            self._terms.append(("conic", o.backbone_px))
+        if o.cam_T_grasper is not None:
+            if sw.grasp_position:
+                self._terms.append(("grasp_position", o.cam_T_grasper[:3, 3].copy()))
+            if sw.grasp_perpendicular:
+                self._terms.append(("grasp_perpendicular", o.cam_T_grasper[:3, 2].copy()))
+        self._noise = {name: model.noise[name] for name, _ in self._terms}
+        self._W = {name: n.sqrt_information for name, n in self._noise.items()}
+        self._tip, self._tail, self._grasp, self._tgrasp = nd.tip_m, nd.tail_m, nd.grasp_m, nd.grasp_tangent
+        self.dim = sum(self._term_dim(name, data) for name, data in self._terms)
+
+    @staticmethod
+    def _term_dim(name: str, data: object) -> int:
+        return len(data) if name == "conic" else {"tip": 2, "tail": 2, "grasp_position": 3, "grasp_perpendicular": 1}[name]
+
+    @property
+    def term_names(self) -> tuple[str, ...]:
+        """Names of the terms present this frame (a subset of tip, tail, conic, grasp_position, grasp_perpendicular)."""
+        return tuple(name for name, _ in self._terms)
+
+    @property
+    def has_image_evidence(self) -> bool:
+        """True when a keypoint or backbone term is present."""
+        return any(n in ("tip", "tail", "conic") for n in self.term_names)
+
+    def _raw(self, name: str, data: object, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if name == "tip":
+            return res.keypoint_residual(T, self._K, self._tip, data)
+        if name == "tail":
+            return res.keypoint_residual(T, self._K, self._tail, data)
+        if name == "conic":
+            return res.conic_residual(T, self._K, self.model.needle.radius_m, data)
+        if name == "grasp_position":
+            return res.grasp_position_residual(T, self._grasp, data)
+        return res.grasp_perpendicular_residual(T, self._tgrasp, data)
+
+    def whitened(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals ``e (N, m)`` and Jacobians ``(N, m, 6)`` of all present terms."""
+        T = res.as_pose_batch(cam_T_needle)
+        N = T.shape[0]
+        es, Js = [], []
+        for name, data in self._terms:
+            r, J = self._raw(name, data, T)
+            n = self._noise[name]
+            W = self._W[name]
+            if name == "conic":
+                # one scalar noise per pixel: W and mean are 1x1
+                es.append((r - n.mean[0]) * W[0, 0])
+                Js.append(J * W[0, 0])
+            else:
+                es.append((r - n.mean) @ W.T)
+                Js.append(np.einsum("ij,njk->nik", W, J))
+        if not es:
+            return np.zeros((N, 0)), np.zeros((N, 0, 6))
+        return np.concatenate(es, axis=1), np.concatenate(Js, axis=1)
+
+    def cheirality(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Penalty ``1/2 s^2`` with ``s = max(0, z_min - z) / 1 mm``: value (N,), gradient (N, 6), GN Hessian (N, 6, 6)."""
+        T = res.as_pose_batch(cam_T_needle)
+        s = np.maximum(0.0, self.model.min_depth_m - T[:, 2, 3]) / 1e-3
+        # dz/dxi = [0, R_row2] (translation moves along R v)
+        Jz = np.zeros((T.shape[0], 6))
+        Jz[:, 3:] = T[:, 2, :3]
+        Js = -(s > 0).astype(float)[:, None] * Jz / 1e-3
+        return 0.5 * s * s, s[:, None] * Js, Js[:, :, None] * Js[:, None, :]
+
+    def nll(self, cam_T_needle: np.ndarray) -> np.ndarray:
+        """Negative log-likelihood ``1/2 |e|^2`` plus the cheirality penalty, shape (N,)."""
+        e, _ = self.whitened(cam_T_needle)
+        return 0.5 * np.sum(e * e, axis=1) + self.cheirality(cam_T_needle)[0]
+
+    def gauss_newton(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``nll (N,)``, its gradient ``J^T e`` ``(N, 6)`` and ``H = J^T J`` ``(N, 6, 6)`` (right chart)."""
+        e, J = self.whitened(cam_T_needle)
+        c, cg, cH = self.cheirality(cam_T_needle)
+        nll = 0.5 * np.sum(e * e, axis=1) + c
+        grad = np.einsum("nm,nmk->nk", e, J) + cg
+        H = np.einsum("nmj,nmk->njk", J, J) + cH
+        return nll, grad, H
+
+    def gtsam_factors(self, key: int) -> list[gtsam.NonlinearFactor]:
+        """The same terms as GTSAM factors on ``key`` (bias folded into the measurement where it is additive).
+
+        The biases of keypoint and grasp-position residuals shift the measurement
+        (``r - mu = pi(TX) - (z + mu)``); conic and perpendicularity biases are not additive in
+        a measurement, so factors are built only when those biases are zero (else ValueError).
+        The cheirality penalty has no factor: it is zero for every pose in front of the camera.
+        """
+        cam, nd = self.model.camera, self.model.needle
+        out: list[gtsam.NonlinearFactor] = []
+        for name, data in self._terms:
+            n: ResidualNoise = self._noise[name]
+            if name in ("tip", "tail"):
+                X = nd.tip_m if name == "tip" else nd.tail_m
+                out.append(KeypointFactor(key, cam, X, np.asarray(data) + n.mean, n.gtsam_model()))
+            elif name == "conic":
+                if abs(n.mean[0]) > 0:
+                    raise ValueError("a conic bias cannot be expressed as a GTSAM ConicFactor")
+                pts = np.asarray(data)
+                out.append(ConicFactor(key, cam, nd.radius_m, pts,
+                                       gtsam.noiseModel.Isotropic.Sigma(len(pts), float(n.sigma[0]))))
+            elif name == "grasp_position":
+                out.append(GraspPositionFactor(key, nd.grasp_m, np.asarray(data) + n.mean, n.gtsam_model()))
+            else:
+                if abs(n.mean[0]) > 0:
+                    raise ValueError("a perpendicularity bias cannot be expressed as a GTSAM factor")
+                out.append(GraspPerpendicularFactor(key, nd.grasp_tangent, data, n.gtsam_model()))
+        return out

@@ -1,0 +1,265 @@
+"""Segmentation masks -> needle backbone pixels, and recorded frames -> tracker observations.
+
+:func:`backbone_from_mask` turns a binary needle mask (distorted camera image) into at most
+``max_points`` undistorted pixels on the needle's centre-line:
+
+1. **Binarise**: nonzero = needle.
+2. **Drop blobs that cannot be needle**: 8-connected components are kept when their area
+   is at least ``max(min_blob_px, min_blob_fraction · largest area)`` and — after
+   thinning — when they are elongated: ``L² / A >= min_elongation`` with ``L`` the
+   component's skeleton length (pixels) and ``A`` its area, i.e. roughly length/width >= 2
+   (the largest component is always kept). Segmentation false positives are specks or
+   small ellipses (a few to ~150 pixels); the needle, even when occlusion cuts it into
+   pieces, is a wire ~5-10 px thick and tens to hundreds of pixels long. A visible needle
+   piece smaller than a tenth of the largest piece, or shorter than about three wire
+   widths, is sacrificed with them.
+3. **Thin** the kept blobs to a one-pixel centre-line: Zhang-Suen thinning, each
+   sub-iteration one whole-array step over the blobs' bounding box (the 8 neighbours are
+   packed into a byte and a 256-entry table says whether the pixel is deleted).
+4. **Subsample** deterministically to at most ``max_points``: the skeleton pixels in raster
+   order, taken at evenly spaced indices. A one-pixel 8-connected curve has about one pixel
+   per row or per column along its dominant direction, so equal steps in raster order are
+   equal steps along the curve to within a factor √2 (diagonal vs. axis-aligned runs).
+5. **Refine across the wire** (sub-pixel): Zhang-Suen's centre-line is up to half a pixel
+   off for even wire widths and jagged edges. At each kept point the wire's normal comes
+   from the mask's structure tensor (Gaussian window ~ half the wire width); the mask is
+   sampled along the normal and the point moves to the midpoint of the two 0.5-crossings
+   of the wire's cross-section (unchanged when either edge is not found within one wire
+   width, or when the move exceeds ``0.25 ·`` wire width + 1 px, e.g. at a junction).
+6. **Undistort** with :meth:`PinholeCamera.undistort_px`.
+
+The wire width ``w`` used in step 5 is estimated as blob area / skeleton length. Skeleton
+pixels within ``w`` of the image border are dropped before step 4: where the image frame
+cuts the wire obliquely, the thinned line bends towards the middle of the cut.
+
+A centre-line is only meaningful where the wire's image curves more gently than its own
+width: for a needle seen nearly edge-on (apparent ellipse with minor axis comparable to the
+wire width) the mask merges the near and far branches and its centre-line lies between them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from factors.geometry import PinholeCamera
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.observation import Observation
+
+
+def _zhang_suen_tables() -> tuple[np.ndarray, np.ndarray]:
+    """Deletion tables of the two Zhang-Suen sub-iterations, indexed by the neighbour byte.
+
+    Bit ``k`` of the byte is neighbour ``P(k+2)``: P2 = N, P3 = NE, P4 = E, P5 = SE, P6 = S,
+    P7 = SW, P8 = W, P9 = NW. A pixel is deleted when 2 <= B <= 6 (B: foreground
+    neighbours), A = 1 (A: 0->1 transitions around P2..P9,P2) and, in the first
+    sub-iteration, P2·P4·P6 = P4·P6·P8 = 0; in the second, P2·P4·P8 = P2·P6·P8 = 0.
+    """
+    codes = np.arange(256)
+    p = (codes[:, None] >> np.arange(8)[None, :]) & 1  # (256, 8): P2..P9
+    B = p.sum(axis=1)
+    A = ((p == 0) & (np.roll(p, -1, axis=1) == 1)).sum(axis=1)
+    P2, P4, P6, P8 = p[:, 0], p[:, 2], p[:, 4], p[:, 6]
+    base = (B >= 2) & (B <= 6) & (A == 1)
+    first = base & (P2 * P4 * P6 == 0) & (P4 * P6 * P8 == 0)
+    second = base & (P2 * P4 * P8 == 0) & (P2 * P6 * P8 == 0)
+    return first.astype(np.uint8), second.astype(np.uint8)
+
+
+_ZS_FIRST, _ZS_SECOND = _zhang_suen_tables()
+
+
+#: Correlation kernel packing the 8 neighbours into a byte: bit k <-> neighbour P(k+2) (N, NE, E, ... NW).
+_ZS_KERNEL = np.array([[128.0, 1.0, 2.0], [64.0, 0.0, 4.0], [32.0, 16.0, 8.0]], dtype=np.float32)
+
+
+def zhang_suen_thin(binary: np.ndarray) -> np.ndarray:
+    """Zhang-Suen thinning of a 0/1 image ``(H, W)`` -> 0/1 uint8 skeleton ``(H, W)``.
+
+    Vectorised: each sub-iteration packs the 8 neighbours of every pixel into a byte with
+    one 3x3 correlation (weights 1, 2, ..., 128; exact in 8 bits), looks the deletion
+    decision up in a 256-entry table and deletes in one step. Iterations stop when neither
+    sub-iteration deletes anything (about half the stroke width of them). Pixels outside
+    the image count as background.
+    """
+    b = np.asarray(binary)
+    if b.ndim != 2:
+        raise ValueError(f"binary must be 2-D, got shape {b.shape}")
+    C = (b != 0).astype(np.uint8)
+    while True:
+        changed = False
+        for table in (_ZS_FIRST, _ZS_SECOND):
+            code = cv2.filter2D(C, cv2.CV_8U, _ZS_KERNEL, borderType=cv2.BORDER_CONSTANT)
+            delete = cv2.bitwise_and(cv2.LUT(code, table), C)
+            if cv2.countNonZero(delete):
+                cv2.subtract(C, delete, dst=C)
+                changed = True
+        if not changed:
+            return C
+
+
+def _refine_across(
+    crop: np.ndarray, pts_rc: np.ndarray, width_px: float
+) -> np.ndarray:
+    """Move crop points ``(M, 2)`` as (row, col) to the middle of the wire across its local normal.
+
+    ``crop`` is the 0/1 blob image; returns refined (row, col) ``(M, 2)``, float.
+    """
+    f = crop.astype(np.float32)
+    sigma = max(1.0, 0.5 * width_px)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)
+    jxx = cv2.GaussianBlur(gx * gx, (0, 0), sigma)
+    jxy = cv2.GaussianBlur(gx * gy, (0, 0), sigma)
+    jyy = cv2.GaussianBlur(gy * gy, (0, 0), sigma)
+    r = pts_rc[:, 0].astype(int)
+    c = pts_rc[:, 1].astype(int)
+    angle = 0.5 * np.arctan2(2.0 * jxy[r, c], jxx[r, c] - jyy[r, c])  # normal direction (x=col, y=row)
+    n_col, n_row = np.cos(angle), np.sin(angle)
+    reach = max(2.0, width_px)
+    step = 0.25
+    offsets = np.arange(-reach, reach + step / 2, step)  # (S,)
+    mid = int(np.argmin(np.abs(offsets)))
+    map_x = (c[:, None] + offsets[None, :] * n_col[:, None]).astype(np.float32)
+    map_y = (r[:, None] + offsets[None, :] * n_row[:, None]).astype(np.float32)
+    prof = cv2.remap(f, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    inside = prof >= 0.5
+    right_part = ~inside[:, mid:]
+    left_part = ~inside[:, mid::-1]
+    has_r = right_part.any(axis=1)
+    has_l = left_part.any(axis=1)
+    jr = mid + np.argmax(right_part, axis=1)  # first sample outside, going right
+    jl = mid - np.argmax(left_part, axis=1)  # first sample outside, going left
+
+    def crossing(j_out: np.ndarray, j_in: np.ndarray) -> np.ndarray:
+        rows = np.arange(prof.shape[0])
+        a, b = prof[rows, j_in], prof[rows, j_out]
+        t = np.clip((a - 0.5) / np.where(a - b > 1e-6, a - b, 1.0), 0.0, 1.0)
+        return offsets[j_in] + t * (offsets[j_out] - offsets[j_in])
+
+    j_in_r = np.maximum(jr - 1, 0)
+    j_in_l = np.minimum(jl + 1, len(offsets) - 1)
+    edge_r = crossing(jr, j_in_r)
+    edge_l = crossing(jl, j_in_l)
+    shift = 0.5 * (edge_r + edge_l)
+    ok = has_r & has_l & inside[:, mid] & (np.abs(shift) <= 0.25 * width_px + 1.0)
+    shift = np.where(ok, shift, 0.0)
+    return np.stack([r + shift * n_row, c + shift * n_col], axis=1)
+
+
+def backbone_from_mask(
+    mask: np.ndarray,
+    camera: PinholeCamera,
+    max_points: int = 200,
+    min_blob_px: int = 40,
+    min_blob_fraction: float = 0.1,
+    min_elongation: float = 2.0,
+    refine: bool = True,
+    file: str | Path | None = None,
+) -> np.ndarray:
+    """Undistorted centre-line pixels ``(M, 2)`` as (u, v), ``M <= max_points``, of a needle mask.
+
+    ``mask`` is ``(camera.height, camera.width)``, nonzero = needle (distorted image). The
+    steps are in the module docstring. An empty mask (or one with only dropped blobs)
+    gives a ``(0, 2)`` array — "no dense observation". A mask that is not 2-D or not the
+    camera's size raises :class:`InputError` naming ``file``.
+    """
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise InputError(f"mask must be a single-channel 2-D image, got shape {m.shape}", file=file)
+    if camera.width is not None and camera.height is not None and m.shape != (camera.height, camera.width):
+        raise InputError(
+            f"mask is {m.shape[1]}x{m.shape[0]} px but the camera image is {camera.width}x{camera.height}",
+            file=file,
+        )
+    if int(max_points) < 1:
+        raise ValueError(f"max_points must be >= 1, got {max_points}")
+    if m.dtype == np.uint8:
+        binary = cv2.threshold(m, 0, 1, cv2.THRESH_BINARY)[1]
+    elif m.dtype == bool:
+        binary = np.ascontiguousarray(m).view(np.uint8)
+    else:
+        binary = (m != 0).astype(np.uint8)
+    fg = cv2.findNonZero(binary)
+    if fg is None:
+        return np.zeros((0, 2))
+    fg = fg.reshape(-1, 2)  # (N, 2) as (u, v)
+    u_lo, v_lo = fg.min(axis=0)
+    u_hi, v_hi = fg.max(axis=0)
+    box = binary[v_lo : v_hi + 1, u_lo : u_hi + 1]
+    _, labels = cv2.connectedComponents(box, connectivity=8, ltype=cv2.CV_32S)
+    fg_label = labels[fg[:, 1] - v_lo, fg[:, 0] - u_lo]
+    areas = np.bincount(fg_label)
+    areas[0] = 0
+    largest = int(np.argmax(areas))
+    keep = areas >= max(float(min_blob_px), float(min_blob_fraction) * float(areas[largest]))
+    keep[0] = False
+    kept = fg[keep[fg_label]]
+    if kept.shape[0] == 0:
+        return np.zeros((0, 2))
+    c0, r0 = kept.min(axis=0)
+    c1, r1 = kept.max(axis=0) + 1
+    crop = np.zeros((r1 - r0, c1 - c0), dtype=np.uint8)
+    crop[kept[:, 1] - r0, kept[:, 0] - c0] = 1
+    skeleton = zhang_suen_thin(crop)
+    rows, cols = np.nonzero(skeleton)
+    if rows.size == 0:
+        return np.zeros((0, 2))
+    # compact blobs (skeleton length^2 / area < min_elongation) are specks, not wire; the largest stays
+    sk_label = labels[rows + (r0 - v_lo), cols + (c0 - u_lo)]
+    length = np.bincount(sk_label, minlength=areas.size).astype(float)
+    wire = keep & (length * length >= float(min_elongation) * areas)
+    wire[largest] = True
+    on_wire = wire[sk_label]
+    rows, cols = rows[on_wire], cols[on_wire]
+    width_px = float(areas[wire].sum()) / float(rows.size)
+    # where the image frame cuts the wire the centre-line bends towards the cut: drop that stretch
+    border = int(np.ceil(width_px))
+    h, w = m.shape
+    inner = (
+        (rows + r0 >= border) & (rows + r0 <= h - 1 - border) & (cols + c0 >= border) & (cols + c0 <= w - 1 - border)
+    )
+    rows, cols = rows[inner], cols[inner]
+    if rows.size == 0:
+        return np.zeros((0, 2))
+    count = min(int(max_points), rows.size)
+    idx = (np.arange(count) * rows.size) // count
+    pts_rc = np.stack([rows[idx], cols[idx]], axis=1).astype(float)
+    if refine:
+        pts_rc = _refine_across(crop, pts_rc, width_px)
+    pts_px = np.stack([pts_rc[:, 1] + c0, pts_rc[:, 0] + r0], axis=1)
+    return camera.undistort_px(pts_px)
+
+
+def observe_frame(recording, rec, max_points: int = 200) -> Observation:
+    """The tracker's input for one recorded frame (``recording``: a ``Recording``, ``rec``: a ``FrameRecord``).
+
+    Tip/tail keypoints are undistorted; the backbone comes from the frame's mask via
+    :func:`backbone_from_mask` (None when the frame has no mask or the mask holds no
+    needle); ``cam_T_grasper`` is passed through.
+    """
+    camera: PinholeCamera = recording.info.camera
+    tip = None if rec.tip_px is None else camera.undistort_px(np.asarray(rec.tip_px, float)[None, :])[0]
+    tail = None if rec.tail_px is None else camera.undistort_px(np.asarray(rec.tail_px, float)[None, :])[0]
+    backbone = None
+    if rec.mask is not None:
+        mask = recording.load_mask(rec)
+        pts = backbone_from_mask(mask, camera, max_points=max_points, file=Path(recording.root) / rec.mask)
+        backbone = pts if pts.shape[0] > 0 else None
+    return Observation(
+        frame=int(rec.frame),
+        t_s=float(rec.t_s),
+        tip_px=tip,
+        tail_px=tail,
+        backbone_px=backbone,
+        cam_T_grasper=rec.cam_T_grasper,
+    )
+
+
+def iter_observations(recording, max_points: int = 200) -> Iterator[Observation]:
+    """:func:`observe_frame` for every frame of ``recording``, in order."""
+    for rec in recording.frames:
+        yield observe_frame(recording, rec, max_points=max_points)

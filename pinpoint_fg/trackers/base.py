@@ -1,0 +1,124 @@
+"""What every tracker shares: the per-frame estimate, the ``step(observation)`` interface, reporting.
+
+A tracker is fed one :class:`pinpoint_fg.observation.Observation` at a time and returns an
+:class:`Estimate`. The MAP pose, the q95 spread and the tangent covariance are computed the
+same way for every method (paper §IV "Uncertainty Estimation"): tangent vectors
+``xi_i = Log(T_map^-1 T_i)`` of all particles around the MAP particle, the (weighted) 95th
+percentile of ``|v|`` and ``|omega|``, and their weighted covariance.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from factors.geometry import NeedleModel, PinholeCamera
+from pinpoint_fg.eval.metrics import tangent_spread
+from pinpoint_fg.likelihood import MeasurementModel, Switches
+from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.observation import Observation
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A tracker's output for one frame."""
+
+    frame: int
+    """Frame index."""
+    t_s: float
+    """Time stamp, seconds."""
+    cam_T_needle: np.ndarray
+    """(4, 4) MAP pose."""
+    q95_trans_m: float
+    """Weighted 95th percentile of particle translation distances from the MAP, metres."""
+    q95_rot_rad: float
+    """Weighted 95th percentile of particle rotation angles from the MAP, radians."""
+    cov_xi: np.ndarray
+    """(6, 6) weighted covariance of the particles' tangent vectors at the MAP, [omega; v]."""
+    iterations: int
+    """Transport iterations (SVN/SVGD), optimiser iterations (MAP) or 1 (PF)."""
+    latency_ms: float
+    """Wall time of this frame's inference, milliseconds."""
+    particles: np.ndarray
+    """(N, 4, 4) the particle set (N = 1 for MAP)."""
+    log_posterior: np.ndarray
+    """(N,) log-posterior of each particle (up to a constant)."""
+    weights: np.ndarray | None = None
+    """(N,) normalised weights for weighted methods (PF), else None (equal weights)."""
+    smoothed: tuple[int, float, np.ndarray] | None = None
+    """With a window L > 1: (frame, t_s, (4, 4) pose) of the fixed-lag smoothed frame k - L + 1."""
+    reseeded: bool = False
+    """True when every hypothesis was implausible and the particles were re-seeded this frame."""
+    extra: dict = field(default_factory=dict)
+    """Method-specific per-frame numbers (appended as result columns)."""
+
+
+def summarize(particles: np.ndarray, log_posterior: np.ndarray, weights: np.ndarray | None = None,
+              map_index: int | None = None) -> tuple[int, float, float, np.ndarray]:
+    """MAP index (highest log-posterior unless given), q95 translation (m), q95 rotation (rad), covariance (6, 6)."""
+    i = int(np.argmax(log_posterior)) if map_index is None else int(map_index)
+    sp = tangent_spread(particles[i], particles, weights)
+    return i, float(sp.q95_trans_m), float(sp.q95_rot_rad), np.asarray(sp.cov_xi)
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings common to every tracker."""
+
+    camera: PinholeCamera
+    """Camera of the recording."""
+    needle: NeedleModel
+    """Needle of the recording."""
+    noise: NoiseConfig = NoiseConfig()
+    """Residual noise (Table I defaults or a calibration file)."""
+    switches: Switches = Switches()
+    """Enabled likelihood terms."""
+    particles: int = 50
+    """Number of hypotheses."""
+    window: int = 1
+    """Window length L (1 = filter)."""
+    seed: int = 0
+    """Random seed (initial spread, PF noise)."""
+
+    @property
+    def model(self) -> MeasurementModel:
+        """The measurement model every frame's likelihood uses."""
+        return MeasurementModel(self.camera, self.needle, self.noise, self.switches)
+
+
+class Tracker(abc.ABC):
+    """Feed observations one at a time with :meth:`step`; read :attr:`particles` at any time."""
+
+    method: str = "base"
+
+    def __init__(self, config: TrackerConfig) -> None:
+        self.config = config
+        self.rng = np.random.default_rng(config.seed)
+        self._prev_grasper: np.ndarray | None = None
+        self.frames_seen = 0
+
+    @abc.abstractmethod
+    def step(self, observation: Observation) -> Estimate:
+        """Process one frame and return its estimate."""
+
+    @property
+    @abc.abstractmethod
+    def particles(self) -> np.ndarray:
+        """(N, 4, 4) current hypotheses (newest frame)."""
+
+    def settings(self) -> dict:
+        """JSON-serialisable settings written to result.json."""
+        c = self.config
+        return {"method": self.method, "particles": c.particles, "window": c.window, "seed": c.seed,
+                "disabled": list(c.switches.disabled())}
+
+    def grasper_motion(self, observation: Observation) -> np.ndarray | None:
+        """``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` when both are known, else None; remembers frame k."""
+        cur = observation.cam_T_grasper
+        prev = self._prev_grasper
+        self._prev_grasper = None if cur is None else np.asarray(cur, dtype=float)
+        if cur is None or prev is None:
+            return None
+        return cur @ np.linalg.inv(prev)

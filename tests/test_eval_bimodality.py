@@ -1,0 +1,183 @@
+"""The bimodality rule of pinpoint_fg.eval.bimodality on constructed particle sets."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from factors.lie import retract, se3_exp
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.eval.bimodality import (
+    ROT_UNIT_RAD,
+    TRANS_UNIT_M,
+    ashman_d,
+    assess_bimodality,
+    principal_plane,
+    systematic_resample,
+    tangent_at_map,
+)
+
+T_MAP = se3_exp(np.array([0.4, -0.3, 0.2, 0.002, -0.001, 0.03]))
+SCALE = np.array([ROT_UNIT_RAD] * 3 + [TRANS_UNIT_M] * 3)
+
+
+def cloud(rng: np.random.Generator, n: int, centre_scaled, std_scaled: float) -> np.ndarray:
+    """n poses T_MAP * Exp(xi), xi ~ N(centre, std^2 I) in scaled units (5 deg, 1 mm)."""
+    xi = (np.asarray(centre_scaled, dtype=float) + std_scaled * rng.normal(size=(n, 6))) * SCALE
+    return retract(T_MAP[None], xi)
+
+
+FAR = np.array([6.0, 0.0, 0.0, 0.0, 0.0, 8.0])  # 30 deg about x and 8 mm along z: |FAR| = 10 units
+
+
+def test_tangent_at_map_scaling() -> None:
+    xi = np.array([[1.0, 0, 0, 1, 0, 0], [0, -2, 0, 0, 0, 3]]) * SCALE
+    np.testing.assert_allclose(
+        tangent_at_map(T_MAP, retract(T_MAP[None], xi)), [[1, 0, 0, 1, 0, 0], [0, -2, 0, 0, 0, 3]], atol=1e-9
+    )
+    with pytest.raises(InputError):
+        tangent_at_map(T_MAP, np.eye(4))
+
+
+def test_ashman_d_hand_values() -> None:
+    means = np.array([[0.0] * 6, [4.0] + [0.0] * 5])
+    assert ashman_d(means, np.stack([np.eye(6), np.eye(6)])) == pytest.approx(4.0)
+    wide = np.eye(6)
+    wide[0, 0] = 9.0
+    wide[1, 1] = 100.0  # variance off the joining axis does not count
+    assert ashman_d(means, np.stack([wide, np.eye(6)])) == pytest.approx(np.sqrt(2) * 4 / np.sqrt(10))
+    assert ashman_d(np.zeros((2, 6)), np.stack([np.eye(6), np.eye(6)])) == 0.0
+
+
+def test_systematic_resample_counts() -> None:
+    w = np.array([0.05, 0.5, 0.0, 0.3, 0.15])
+    idx = systematic_resample(w, 40, np.random.default_rng(7))
+    counts = np.bincount(idx, minlength=5)
+    assert counts.sum() == 40
+    assert np.all(counts >= np.floor(40 * w)) and np.all(counts <= np.ceil(40 * w))
+    assert counts[2] == 0
+
+
+def test_two_separated_equal_clusters_are_bimodal() -> None:
+    rng = np.random.default_rng(0)
+    P = np.concatenate([cloud(rng, 100, np.zeros(6), 1.0), cloud(rng, 100, FAR, 1.0)])
+    v = assess_bimodality(P, T_MAP)
+    assert v.bimodal and v.reason == "bimodal"
+    assert v.bic2 < v.bic1 and v.ashman_d > 7.0 and v.minor_weight == pytest.approx(0.5, abs=0.02)
+    order = np.argsort(np.linalg.norm(v.means, axis=1))
+    np.testing.assert_allclose(v.means[order], [np.zeros(6), FAR], atol=0.4)
+    assert v.means.shape == (2, 6) and v.covariances.shape == (2, 6, 6) and v.n_fit_points == 200
+    assert v.gt_component is None and v.truth_in_dominant is None  # no truth given
+    # deterministic for a seed
+    assert assess_bimodality(P, T_MAP).ashman_d == v.ashman_d
+
+
+def test_one_gaussian_is_unimodal() -> None:
+    rng = np.random.default_rng(1)
+    P = cloud(rng, 200, np.zeros(6), 1.0)
+    v = assess_bimodality(P, T_MAP, T_gt=T_MAP)
+    assert not v.bimodal
+    assert v.bic1 < v.bic2 and "bic" in v.reason
+    assert v.gt_component is None and v.truth_in_dominant is None
+    np.testing.assert_allclose(v.gt_xi_scaled, 0.0, atol=1e-9)
+
+
+def test_95_5_split_is_unimodal_by_minor_weight() -> None:
+    rng = np.random.default_rng(2)
+    P = np.concatenate([cloud(rng, 380, np.zeros(6), 1.0), cloud(rng, 20, FAR, 1.0)])
+    v = assess_bimodality(P, T_MAP)
+    assert v.bic2 < v.bic1 and v.ashman_d > 2.0
+    assert v.minor_weight == pytest.approx(0.05, abs=0.01)
+    assert not v.bimodal and v.reason == "minor_weight"
+
+
+def test_overlapping_clusters_are_unimodal_even_when_bic_prefers_two() -> None:
+    # a narrow spike inside a broad cloud: BIC strongly prefers two components, but they overlap
+    rng = np.random.default_rng(3)
+    P = np.concatenate([cloud(rng, 300, np.zeros(6), 0.05), cloud(rng, 300, [0.5, 0, 0, 0, 0, 0], 1.0)])
+    v = assess_bimodality(P, T_MAP)
+    assert v.bic2 < v.bic1 - 1000.0
+    assert v.minor_weight >= 0.1
+    assert v.ashman_d < 2.0
+    assert not v.bimodal and v.reason == "ashman_d"
+
+
+def test_truth_is_assigned_to_the_nearer_mean() -> None:
+    rng = np.random.default_rng(4)
+    P = np.concatenate([cloud(rng, 140, np.zeros(6), 1.0), cloud(rng, 60, FAR, 1.0)])
+    near_minor = retract(T_MAP, (FAR + np.array([0.5, -0.5, 0, 0, 0.5, 0])) * SCALE)
+    near_major = retract(T_MAP, np.array([0.0, 0.5, 0, 0.5, 0, -0.5]) * SCALE)
+    v_minor = assess_bimodality(P, T_MAP, T_gt=near_minor)
+    v_major = assess_bimodality(P, T_MAP, T_gt=near_major)
+    for v in (v_minor, v_major):
+        assert v.bimodal
+        assert v.weights[v.dominant] == pytest.approx(0.7, abs=0.02)
+    far_idx = int(np.argmax(np.linalg.norm(v_minor.means, axis=1)))
+    assert far_idx != v_minor.dominant
+    assert v_minor.gt_component == far_idx and v_minor.truth_in_dominant is False
+    assert v_major.gt_component == v_major.dominant and v_major.truth_in_dominant is True
+    np.testing.assert_allclose(v_minor.gt_xi_scaled, FAR + np.array([0.5, -0.5, 0, 0, 0.5, 0]), atol=1e-6)
+
+
+def test_weights_are_honoured() -> None:
+    rng = np.random.default_rng(5)
+    P = np.concatenate([cloud(rng, 150, np.zeros(6), 1.0), cloud(rng, 150, FAR, 1.0)])
+    assert assess_bimodality(P, T_MAP).bimodal
+    w = np.r_[np.full(150, 0.97 / 150), np.full(150, 0.03 / 150)]
+    v = assess_bimodality(P, T_MAP, weights=w)
+    assert not v.bimodal and v.minor_weight < 0.1
+    w2 = rng.uniform(0.5, 1.5, size=300)
+    assert assess_bimodality(P, T_MAP, weights=w2).bimodal
+    with pytest.raises(InputError):
+        assess_bimodality(P, T_MAP, weights=np.ones(10))
+    with pytest.raises(InputError):
+        assess_bimodality(P, T_MAP, weights=np.zeros(300))
+
+
+def test_degenerate_sets_are_unimodal() -> None:
+    same = np.repeat(T_MAP[None], 50, axis=0)
+    v = assess_bimodality(same, T_MAP, T_gt=T_MAP)
+    assert not v.bimodal and v.reason == "degenerate" and np.isnan(v.bic1)
+    np.testing.assert_array_equal(v.weights, [1.0, 0.0])
+    rng = np.random.default_rng(6)
+    five = np.repeat(cloud(rng, 5, np.zeros(6), 3.0), 10, axis=0)
+    assert assess_bimodality(five, T_MAP).reason == "degenerate"
+    # a weighted set collapsed onto three particles
+    P = cloud(rng, 100, np.zeros(6), 3.0)
+    w = np.zeros(100)
+    w[[3, 50, 70]] = 1.0
+    assert assess_bimodality(P, T_MAP, weights=w).reason == "degenerate"
+
+
+def test_speed_small_and_large_sets() -> None:
+    rng = np.random.default_rng(8)
+    small = np.concatenate([cloud(rng, 25, np.zeros(6), 0.3), cloud(rng, 25, FAR, 0.3)])
+    big = np.concatenate([cloud(rng, 1500, np.zeros(6), 1.0), cloud(rng, 1500, FAR, 1.0)])
+    w = rng.uniform(size=3000)
+    assess_bimodality(small, T_MAP)  # warm-up (imports, BLAS threads)
+    t0 = time.perf_counter()
+    for _ in range(5):
+        v_small = assess_bimodality(small, T_MAP)
+    t_small = (time.perf_counter() - t0) / 5
+    t0 = time.perf_counter()
+    v_big = assess_bimodality(big, T_MAP, weights=w)
+    t_big = time.perf_counter() - t0
+    assert v_small.bimodal and v_big.bimodal and v_big.n_fit_points == 1000
+    # generous guards (targets: a few ms and < 100 ms) so a busy machine does not fail them
+    assert t_small < 0.1 and t_big < 0.5
+
+
+def test_principal_plane() -> None:
+    rng = np.random.default_rng(9)
+    X = rng.normal(size=(500, 6)) * np.array([5.0, 0.1, 0.1, 0.1, 2.0, 0.1])
+    B = principal_plane(X)
+    np.testing.assert_allclose(B @ B.T, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(np.abs(B[0]), np.eye(6)[0], atol=0.02)
+    np.testing.assert_allclose(np.abs(B[1]), np.eye(6)[4], atol=0.02)
+    assert B[0, 0] > 0 and B[1, 4] > 0
+    D = principal_plane(np.zeros((1, 6)))
+    np.testing.assert_allclose(D @ D.T, np.eye(2), atol=1e-12)
+    with pytest.raises(InputError):
+        principal_plane(np.zeros((3, 5)))

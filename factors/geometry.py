@@ -115,14 +115,12 @@ class PinholeCamera:
         pts = as_points_px("points_px", points_px)
         if not self.has_distortion or pts.shape[0] == 0:
             return pts.copy()
-        out = cv2.undistortPointsIter(
-            pts.reshape(-1, 1, 2),
-            self.K,
-            self.dist_coeffs(),
-            R=None,
-            P=self.K,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10),
-        )
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+        src = pts.reshape(-1, 1, 2)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+            out = cv2.undistortPointsIter(src, self.K, self.dist_coeffs(), None, self.K, criteria)
+        else:  # OpenCV 5.x folded the iterative variant into undistortPoints
+            out = cv2.undistortPoints(src, self.K, self.dist_coeffs(), R=None, P=self.K, criteria=criteria)
         return out.reshape(-1, 2).astype(float)
 
     def distort_px(self, points_px: np.ndarray) -> np.ndarray:

@@ -126,31 +126,43 @@ def conic_residual(
     A = A * scale[:, None, None]
     DA = DA * scale[:, None, None, None]
 
-    x = np.concatenate([pts, np.ones((M, 1))], axis=1)  # (M, 3)
-    q = np.array([1.0, 1.0, -(float(radius_m) ** 2)])
-    y = np.einsum("nik,mk->nmi", A, x)  # (N, M, 3)
-    Dy = np.einsum("nikd,mk->nmid", DA, x)  # (N, M, 3, 6)
-    qy = y * q
-    f = np.sum(qy * y, axis=2)  # (N, M)
-    Df = 2.0 * np.einsum("nmi,nmid->nmd", qy, Dy)
-    A2 = A[:, :, :2]  # (N, 3, 2): first two components of each row
-    g = 2.0 * np.einsum("nmi,nij->nmj", qy, A2)  # (N, M, 2)
-    Dg = 2.0 * (
-        np.einsum("nmid,nij->nmjd", Dy * q[None, None, :, None], A2) + np.einsum("nmi,nijd->nmjd", qy, DA[:, :, :2, :])
-    )
+    # Work in centred, scaled pixels x = P xh (P = [[s, 0, cu], [0, s, cv], [0, 0, 1]]) so every term
+    # is O(1): f is unchanged, the image gradient scales by s, and s_px = s * f / |gh|.
+    centre = pts.mean(axis=0) if M else np.zeros(2)
+    sc = max(float(np.sqrt(np.mean(np.sum((pts - centre) ** 2, axis=1)))) if M else 1.0, 1.0)
+    P = np.array([[sc, 0.0, centre[0]], [0.0, sc, centre[1]], [0.0, 0.0, 1.0]])
+    xh = np.concatenate([(pts - centre) / sc, np.ones((M, 1))], axis=1)  # (M, 3)
+    Q = np.diag([1.0, 1.0, -(float(radius_m) ** 2)])
+    # Ch = P^T A^T Q A P and its derivative per tangent direction (N, 6, 3, 3)
+    AP = A @ P
+    QAP = Q @ AP
+    C = np.swapaxes(AP, 1, 2) @ QAP
+    DAd = np.moveaxis(DA, 3, 1) @ P  # (N, 6, 3, 3): [n, d, row i, component k]
+    dC = np.swapaxes(DAd, 2, 3) @ QAP[:, None]
+    dC = dC + np.swapaxes(dC, 2, 3)
+    cn = 1.0 / np.maximum(np.linalg.norm(C, axis=(1, 2)), 1e-300)  # scale invariance again
+    C = C * cn[:, None, None]
+    dC = dC * cn[:, None, None, None]
+    xT = xh.T  # (3, M)
+    Cx = C @ xT  # (N, 3, M)
+    f = np.sum(Cx * xT, axis=1)  # (N, M)
+    g = 2.0 * np.swapaxes(Cx[:, :2, :], 1, 2)  # (N, M, 2)
+    dCx = dC @ xT  # (N, 6, 3, M)
+    Df = np.swapaxes(np.sum(dCx * xT, axis=2), 1, 2)  # (N, M, 6)
+    Dg = 2.0 * np.moveaxis(dCx[:, :, :2, :], (1, 2, 3), (3, 2, 1))  # (N, M, 2, 6)
     g2 = np.sum(g * g, axis=2)
     gn = np.sqrt(g2)
-    f2d = (f / SAMPSON_MAX_PX) ** 2
+    f2d = (f * sc / SAMPSON_MAX_PX) ** 2
     den = g2 + f2d
     ok = den > 0
     iden = np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
-    r = f * gn * iden
-    # s = f |g| / den:  ds = df (|g| - 2 f^2 |g| / D^2 / den) / den + d|g| f (1 - 2 g^2 / den) / den
+    r = sc * f * gn * iden
+    # s = sc f |g| / den:  ds = sc [df (|g| - 2 f2d |g| / den) / den + d|g| f (1 - 2 g^2 / den) / den]
     gdg = np.einsum("nmj,nmjd->nmd", g, Dg)
     safe_gn = np.where(gn > 0, gn, 1.0)
     dgn = np.where((gn > 0)[..., None], gdg / safe_gn[..., None], 0.0)
-    c_f = gn * (1.0 - 2.0 * f2d * iden) * iden
-    c_g = f * (1.0 - 2.0 * g2 * iden) * iden
+    c_f = sc * gn * (1.0 - 2.0 * f2d * iden) * iden
+    c_g = sc * f * (1.0 - 2.0 * g2 * iden) * iden
     J = Df * c_f[..., None] + dgn * c_g[..., None]
     return r, J
 

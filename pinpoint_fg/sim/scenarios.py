@@ -93,7 +93,7 @@ SCENARIOS: tuple[str, ...] = ("slow", "normal", "rotation", "suturing", "calibra
 #: In ``rotation``, the tip detector fails beyond this angle between needle normal and viewing ray, degrees.
 ROTATION_TIP_DROPOUT_DEG = 60.0
 #: ``heavy`` occlusion: the tip is hidden and at least this share of the arc is inside tissue.
-HEAVY_HIDDEN_FRACTION = 0.4
+HEAVY_HIDDEN_FRACTION = 0.3
 
 
 @dataclass(frozen=True)
@@ -366,6 +366,7 @@ def _scenario_suturing(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, 
     G_tmp = T0 @ nTg
     free = _free_motion(rng, t, G_tmp, se3_inverse(nTg)[:3, 3], 1.0e-3, math.radians(3.0))
     free_d = (free[:, :3, 3] - G_tmp[:3, 3]) * _smoothstep(after / 0.2)[:, None]
+    free_d -= 2.0 * np.maximum(free_d @ m, 0.0)[:, None] * m[None, :]  # never back into the tissue
 
     def needle_pose(psi: np.ndarray) -> np.ndarray:
         Rz = _poses(rot_z(psi), np.zeros((F, 3)))

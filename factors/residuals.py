@@ -78,8 +78,8 @@ def keypoint_residual(
 
 
 def conic_residual(
-    cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+    cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Sampson distance (pixels) of each backbone pixel to the image conic of the needle circle.
 
     ``H = K [r1 r2 t]`` maps the needle plane to the image; with ``A = adj(H)`` (the adjugate,
@@ -98,7 +98,12 @@ def conic_residual(
     ``D / 2``. The circle is the full circle, not the arc (the paper's model). A circle behind
     the camera projects to the same conic: this residual cannot see cheirality.
 
-    ``points_px`` ``(M, 2)`` are undistorted pixels. Returns ``r (N, M)``, ``J (N, M, 6)``.
+    Internally the pixels are centred and scaled (``x = P xh``) so every product is O(1); ``f``
+    is unchanged by that and the image gradient scales exactly, so the result is the same
+    Sampson distance in pixels.
+
+    ``points_px`` ``(M, 2)`` are undistorted pixels. Returns ``r (N, M)``, ``J (N, M, 6)``
+    (``J`` is None with ``jacobian=False``, which skips its computation; ``r`` is identical).
     """
     T = as_pose_batch(cam_T_needle)
     K = np.asarray(K, dtype=float)
@@ -147,6 +152,12 @@ def conic_residual(
     Cx = C @ xT  # (N, 3, M)
     f = np.sum(Cx * xT, axis=1)  # (N, M)
     g = 2.0 * np.swapaxes(Cx[:, :2, :], 1, 2)  # (N, M, 2)
+    if not jacobian:
+        g2 = np.sum(g * g, axis=2)
+        f2d = (f * sc / SAMPSON_MAX_PX) ** 2
+        den = g2 + f2d
+        ok = den > 0
+        return sc * f * np.sqrt(g2) * np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0), None
     dCx = dC @ xT  # (N, 6, 3, M)
     Df = np.swapaxes(np.sum(dCx * xT, axis=2), 1, 2)  # (N, M, 6)
     Dg = 2.0 * np.moveaxis(dCx[:, :, :2, :], (1, 2, 3), (3, 2, 1))  # (N, M, 2, 6)
@@ -158,7 +169,7 @@ def conic_residual(
     iden = np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
     r = sc * f * gn * iden
     # s = sc f |g| / den:  ds = sc [df (|g| - 2 f2d |g| / den) / den + d|g| f (1 - 2 g^2 / den) / den]
-    gdg = np.einsum("nmj,nmjd->nmd", g, Dg)
+    gdg = g[..., 0, None] * Dg[..., 0, :] + g[..., 1, None] * Dg[..., 1, :]
     safe_gn = np.where(gn > 0, gn, 1.0)
     dgn = np.where((gn > 0)[..., None], gdg / safe_gn[..., None], 0.0)
     c_f = sc * gn * (1.0 - 2.0 * f2d * iden) * iden

@@ -156,36 +156,38 @@ class FrameLikelihood:
         """True when a keypoint or backbone term is present."""
         return any(n in ("tip", "tail", "conic") for n in self.term_names)
 
-    def _raw(self, name: str, data: object, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _raw(self, name: str, data: object, T: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray]:
         if name == "tip":
             return res.keypoint_residual(T, self._K, self._tip, data)
         if name == "tail":
             return res.keypoint_residual(T, self._K, self._tail, data)
         if name == "conic":
-            return res.conic_residual(T, self._K, self.model.needle.radius_m, data)
+            return res.conic_residual(T, self._K, self.model.needle.radius_m, data, jacobian=jacobian)
         if name == "grasp_position":
             return res.grasp_position_residual(T, self._grasp, data)
         return res.grasp_perpendicular_residual(T, self._tgrasp, data)
 
-    def whitened(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Whitened residuals ``e (N, m)`` and Jacobians ``(N, m, 6)`` of all present terms."""
+    def whitened(self, cam_T_needle: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Whitened residuals ``e (N, m)`` and Jacobians ``(N, m, 6)`` (None with ``jacobian=False``)."""
         T = res.as_pose_batch(cam_T_needle)
         N = T.shape[0]
         es, Js = [], []
         for name, data in self._terms:
-            r, J = self._raw(name, data, T)
+            r, J = self._raw(name, data, T, jacobian)
             n = self._noise[name]
             W = self._W[name]
             if name == "conic":
                 # one scalar noise per pixel: W and mean are 1x1
                 es.append((r - n.mean[0]) * W[0, 0])
-                Js.append(J * W[0, 0])
+                if jacobian:
+                    Js.append(J * W[0, 0])
             else:
                 es.append((r - n.mean) @ W.T)
-                Js.append(np.einsum("ij,njk->nik", W, J))
+                if jacobian:
+                    Js.append(W @ J)
         if not es:
-            return np.zeros((N, 0)), np.zeros((N, 0, 6))
-        return np.concatenate(es, axis=1), np.concatenate(Js, axis=1)
+            return np.zeros((N, 0)), (np.zeros((N, 0, 6)) if jacobian else None)
+        return np.concatenate(es, axis=1), (np.concatenate(Js, axis=1) if jacobian else None)
 
     def cheirality(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penalty ``1/2 s^2`` with ``s = max(0, z_min - z) / 1 mm``: value (N,), gradient (N, 6), GN Hessian (N, 6, 6)."""
@@ -199,7 +201,7 @@ class FrameLikelihood:
 
     def nll(self, cam_T_needle: np.ndarray) -> np.ndarray:
         """Negative log-likelihood ``1/2 |e|^2`` plus the cheirality penalty, shape (N,)."""
-        e, _ = self.whitened(cam_T_needle)
+        e, _ = self.whitened(cam_T_needle, jacobian=False)
         return 0.5 * np.sum(e * e, axis=1) + self.cheirality(cam_T_needle)[0]
 
     def gauss_newton(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -207,8 +209,9 @@ class FrameLikelihood:
         e, J = self.whitened(cam_T_needle)
         c, cg, cH = self.cheirality(cam_T_needle)
         nll = 0.5 * np.sum(e * e, axis=1) + c
-        grad = np.einsum("nm,nmk->nk", e, J) + cg
-        H = np.einsum("nmj,nmk->njk", J, J) + cH
+        JT = np.swapaxes(J, 1, 2)
+        grad = (JT @ e[:, :, None])[:, :, 0] + cg
+        H = JT @ J + cH
         return nll, grad, H
 
     def gtsam_factors(self, key: int) -> list[gtsam.NonlinearFactor]:

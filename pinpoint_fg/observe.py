@@ -41,6 +41,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -48,6 +49,9 @@ import numpy as np
 from factors.geometry import PinholeCamera
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.observation import Observation
+
+if TYPE_CHECKING:
+    from pinpoint_fg.io.recording import FrameRecord, Recording
 
 
 def _zhang_suen_tables() -> tuple[np.ndarray, np.ndarray]:
@@ -162,10 +166,13 @@ def backbone_from_mask(
 ) -> np.ndarray:
     """Undistorted centre-line pixels ``(M, 2)`` as (u, v), ``M <= max_points``, of a needle mask.
 
-    ``mask`` is ``(camera.height, camera.width)``, nonzero = needle (distorted image). The
-    steps are in the module docstring. An empty mask (or one with only dropped blobs)
-    gives a ``(0, 2)`` array — "no dense observation". A mask that is not 2-D or not the
-    camera's size raises :class:`InputError` naming ``file``.
+    ``mask`` is ``(camera.height, camera.width)``, nonzero = needle (distorted image), any
+    dtype. The steps are in the module docstring: ``min_blob_px``, ``min_blob_fraction`` and
+    ``min_elongation`` are step 2's thresholds, ``refine`` switches step 5 off (the raw
+    Zhang-Suen pixels, up to half a pixel off). An empty mask (or one with only dropped
+    blobs) gives a ``(0, 2)`` array — "no dense observation". A mask that is not 2-D or not
+    the camera's size raises :class:`InputError` naming ``file``. Deterministic; ~3 ms for a
+    1080x1080 mask with a 100 px-radius arc.
     """
     m = np.asarray(mask)
     if m.ndim != 2:
@@ -234,8 +241,8 @@ def backbone_from_mask(
     return camera.undistort_px(pts_px)
 
 
-def observe_frame(recording, rec, max_points: int = 200) -> Observation:
-    """The tracker's input for one recorded frame (``recording``: a ``Recording``, ``rec``: a ``FrameRecord``).
+def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200) -> Observation:
+    """The tracker's input for one recorded frame ``rec`` of ``recording``.
 
     Tip/tail keypoints are undistorted; the backbone comes from the frame's mask via
     :func:`backbone_from_mask` (None when the frame has no mask or the mask holds no
@@ -259,7 +266,7 @@ def observe_frame(recording, rec, max_points: int = 200) -> Observation:
     )
 
 
-def iter_observations(recording, max_points: int = 200) -> Iterator[Observation]:
+def iter_observations(recording: Recording, max_points: int = 200) -> Iterator[Observation]:
     """:func:`observe_frame` for every frame of ``recording``, in order."""
     for rec in recording.frames:
         yield observe_frame(recording, rec, max_points=max_points)

@@ -23,6 +23,12 @@ back-substitution that moves the older poses with the newest (smoothing). This e
 when the window exceeds ``L`` poses the oldest is marginalised into a new prior on the next one
 (Schur complement, re-expressed as a mean and information; eigenvalues floored so it stays
 positive definite). ``L = 1`` is the paper's filter.
+
+**Evidence**: marginalisation also leaves a constant per hypothesis — the cost of the history it
+removed, at its optimum. Discarding it (as a prior factor does) would make every hypothesis look
+equally supported by the past; it is kept in :attr:`Window.evidence` with a forgetting factor
+``gamma`` per frame (``evidence <- gamma * evidence + c``), so hypotheses are compared on their
+recent history (about ``1 / (1 - gamma)`` frames) rather than on the current frame alone.
 """
 
 from __future__ import annotations
@@ -43,11 +49,16 @@ _RIDGE = 1e-12  # relative ridge added before inverting 6x6 blocks
 
 
 def _inv_psd(H: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric PSD blocks ``(..., 6, 6)`` with a tiny relative ridge (finite for singular H)."""
+    """Inverse of symmetric PSD blocks ``(..., 6, 6)``, finite even for singular H.
+
+    Jacobi-scaled first (``D^-1 H D^-1`` with ``D = sqrt(diag H)``) so the tiny ridge ``_RIDGE``
+    is unit-free: the blocks mix rad^-2 and m^-2 entries that differ by orders of magnitude.
+    """
     Hs = 0.5 * (H + np.swapaxes(H, -1, -2))
-    tr = np.trace(Hs, axis1=-2, axis2=-1)
-    ridge = _RIDGE * np.maximum(tr, 1e-300)[..., None, None] * np.eye(H.shape[-1]) + 1e-300 * np.eye(H.shape[-1])
-    return np.linalg.inv(Hs + ridge)
+    d = np.sqrt(np.maximum(np.einsum("...ii->...i", Hs), 1e-300))
+    Hn = Hs / (d[..., :, None] * d[..., None, :])
+    inv = np.linalg.inv(Hn + _RIDGE * np.eye(H.shape[-1]))
+    return inv / (d[..., :, None] * d[..., None, :])
 
 
 def floor_information(H: np.ndarray, rel: float = 1e-9, abs_floor: float = 1e-6) -> np.ndarray:
@@ -87,10 +98,14 @@ class Linearization:
 class Window:
     """The sliding windows of all hypotheses (see module docstring)."""
 
-    def __init__(self, length: int, motion_sqrt_info: np.ndarray) -> None:
+    def __init__(self, length: int, motion_sqrt_info: np.ndarray, forgetting: float = 0.9) -> None:
         if int(length) < 1:
             raise ValueError(f"window length must be >= 1, got {length}")
+        if not 0.0 <= forgetting <= 1.0:
+            raise ValueError(f"forgetting must be in [0, 1], got {forgetting}")
         self.length = int(length)
+        self.forgetting = float(forgetting)
+        self.evidence: np.ndarray | None = None  # (N,) accumulated marginalised cost
         self.motion_W = np.asarray(motion_sqrt_info, dtype=float)
         self.walk_W = np.diag(1.0 / RANDOM_WALK_SIGMA)
         self.poses: np.ndarray | None = None  # (L', N, 4, 4)
@@ -124,6 +139,7 @@ class Window:
         self.frames = [frame]
         self.deltas, self.delta_W = [], []
         self.prior_mean = T.copy()
+        self.evidence = np.zeros(T.shape[0])
         W = np.diag(1.0 / np.asarray(prior_sigma, dtype=float))
         self.prior_W = np.broadcast_to(W, (T.shape[0], 6, 6)).copy()
 
@@ -278,6 +294,10 @@ class Window:
         Hn = floor_information(C - BT @ Ainv @ B)
         gn = g1 - np.einsum("nij,nj->ni", BT @ Ainv, gA)
         d_star = -np.linalg.solve(Hn, gn[..., None])[..., 0]
+        # constant left by the elimination: value at the optimum of the removed pose and of the new prior
+        c = v0 + 0.5 * np.sum(e * e, axis=1) - 0.5 * np.sum(gA * np.einsum("nij,nj->ni", Ainv, gA), axis=1)
+        c = c - 0.5 * np.sum(gn * -d_star, axis=1)
+        self.evidence = self.forgetting * self.evidence + c
         self.prior_mean = self.poses[1] @ se3_exp(d_star)
         self.prior_W = sqrt_information(Hn)
         self.poses = self.poses[1:]
@@ -291,3 +311,5 @@ class Window:
         self.poses = self.poses[:, index]
         self.prior_mean = self.prior_mean[index]
         self.prior_W = self.prior_W[index]
+        if self.evidence is not None:
+            self.evidence = self.evidence[index]

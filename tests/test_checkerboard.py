@@ -36,7 +36,8 @@ def _board_pose(rng: np.random.Generator, max_tilt_deg: float = 60.0) -> np.ndar
         axis[2] = 0.0
         axis /= np.linalg.norm(axis)
         T = np.eye(4)
-        T[:3, :3] = so3_exp(axis * math.radians(rng.uniform(0.0, max_tilt_deg))) @ _rot_z(rng.uniform(-math.pi, math.pi))
+        tilt = so3_exp(axis * math.radians(rng.uniform(0.0, max_tilt_deg)))
+        T[:3, :3] = tilt @ _rot_z(rng.uniform(-math.pi, math.pi))
         T[:3, 3] = [rng.uniform(-0.012, 0.012), rng.uniform(-0.012, 0.012), rng.uniform(0.030, 0.060)]
         if board_visible(CAM, T):
             return T
@@ -44,7 +45,8 @@ def _board_pose(rng: np.random.Generator, max_tilt_deg: float = 60.0) -> np.ndar
 
 def _background(rng: np.random.Generator) -> np.ndarray:
     low = rng.normal(0.0, 1.0, (12, 12, 3)).astype(np.float32)
-    img = np.array([105.0, 115.0, 185.0], np.float32) + 20.0 * cv2.resize(low, (1080, 1080), interpolation=cv2.INTER_CUBIC)
+    smooth = cv2.resize(low, (1080, 1080), interpolation=cv2.INTER_CUBIC)
+    img = np.array([105.0, 115.0, 185.0], np.float32) + 20.0 * smooth
     return np.clip(img, 0, 255).astype(np.uint8)
 
 

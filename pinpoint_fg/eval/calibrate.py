@@ -58,7 +58,7 @@ def residuals_at_truth(recording: Recording) -> dict[str, np.ndarray]:
     :class:`InputError` naming the run when no frame has ground truth.
     """
     if not recording.has_ground_truth:
-        raise InputError("no frame has ground truth (gt_* columns); calibration needs it", file=recording.root)
+        raise InputError("no frame has ground truth (gt_* columns): cannot calibrate", file=recording.root)
     cam, nd = recording.info.camera, recording.info.needle
     K = cam.K
     out: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
@@ -78,7 +78,8 @@ def residuals_at_truth(recording: Recording) -> dict[str, np.ndarray]:
         G = rec.cam_T_grasper
         if G is not None:
             out["grasp_position"].append(res.grasp_position_residual(T, nd.grasp_m, G[:3, 3])[0])
-            out["grasp_perpendicular"].append(res.grasp_perpendicular_residual(T, nd.grasp_tangent, G[:3, 2])[0])
+            perp = res.grasp_perpendicular_residual(T, nd.grasp_tangent, G[:3, 2])[0]
+            out["grasp_perpendicular"].append(perp)
             if prev is not None and prev.cam_T_grasper is not None and rec.frame - prev.frame == 1:
                 D = G @ np.linalg.inv(prev.cam_T_grasper)
                 out["motion"].append(res.motion_residual(prev.cam_T_needle_gt, T, D)[0])
@@ -87,7 +88,7 @@ def residuals_at_truth(recording: Recording) -> dict[str, np.ndarray]:
 
 
 def _floored_cov(samples: np.ndarray) -> np.ndarray:
-    """Unbiased sample covariance ``(d, d)`` of ``samples`` ``(n, d)``, eigenvalues floored (module docstring)."""
+    """Unbiased sample covariance ``(d, d)`` of ``samples`` ``(n, d)``, eigenvalues floored (see module)."""
     cov = np.atleast_2d(np.cov(samples, rowvar=False, ddof=1))
     cov = 0.5 * (cov + cov.T)
     w, V = np.linalg.eigh(cov)
@@ -151,7 +152,12 @@ def format_table(noise: NoiseConfig) -> str:
     tip, tail = r["tip"], r["tail"]
     gp, perp, conic, mo = r["grasp_position"], r["grasp_perpendicular"], r["conic"], r["motion"]
     rows = [
-        ("Anchor (x, y, z)", f"({_fmt(gp.sigma * 1e3, 2)}) mm", f"({_fmt(gp.mean * 1e3, 2)}) mm", count("grasp_position")),
+        (
+            "Anchor (x, y, z)",
+            f"({_fmt(gp.sigma * 1e3, 2)}) mm",
+            f"({_fmt(gp.mean * 1e3, 2)}) mm",
+            count("grasp_position"),
+        ),
         ("Perpendicular", f"{perp.sigma[0]:.3f}", f"{perp.mean[0]:.3f}", count("grasp_perpendicular")),
         ("Conic", f"{conic.sigma[0]:.3f} px", f"{conic.mean[0]:.3f} px", count("conic")),
         (

@@ -55,7 +55,7 @@ normal is 35-50° off the viewing ray so the arc projects as an open ellipse):
     along the surface normal, the hidden middle shrinks to nothing — a simplification of
     pulling through that keeps what the camera sees: both ends visible, a shrinking hidden
     middle); free motion (75-100 %). The tissue surface is a plane; an arc point is hidden
-    when it lies inside. Slip: from 55 % to 70 % of the drive the robot keeps turning while the
+    when it lies inside. Slip: from 55 % to 67 % of the drive the robot keeps turning while the
     embedded needle stays put; the lag stays until the needle is free and relaxes over 1 s
     afterwards (recorded kinematics are off by up to ~1.3 mm in that time).
 ``calibration``
@@ -67,7 +67,7 @@ normal is 35-50° off the viewing ray so the arc projects as an open ellipse):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -131,7 +131,7 @@ class SimRun:
     info: RecordingInfo
     """The recording.json contents."""
     frames: list[FrameRecord]
-    """One record per frame, as written to frames.csv (mask/image paths as the writer names them)."""
+    """One record per frame, as written to frames.csv (mask paths as the writer names them; image None)."""
     masks: dict[int, np.ndarray]
     """Frame index -> uint8 0/255 mask ``(H, W)``."""
     cam_T_needle: np.ndarray
@@ -349,7 +349,7 @@ def _scenario_suturing(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, 
     w_app = np.clip(u / u_app, 0, 1)
     w_drv = np.clip((u - u_app) / (u_drv - u_app), 0, 1)
     w_lift = np.clip((u - u_drv) / (u_lift - u_drv), 0, 1)
-    # slip within the drive: the needle stalls from 55 % to 70 % of the drive (time warp)
+    # slip within the drive: the needle stalls from 55 % to 67 % of the drive (time warp)
     s0, ds = 0.55, 0.12
     warped = (w_drv - np.clip(w_drv - s0, 0.0, ds)) / (1.0 - ds)
     psi_true = sgn * psi_end * _ease(warped)
@@ -461,13 +461,20 @@ def image_path(frame: int) -> str:
     return f"images/{frame:06d}.png"
 
 
-def simulate_frames(
-    scenario: str, n_frames: int = 300, seed: int = 0, config: SimConfig | None = None
-) -> SimRun:
-    """Simulate a run in memory (module docstring): recorded frames, masks and the noise-free truth.
+@dataclass
+class _Pending:
+    """Per-frame recorded values decided before any mask is rendered."""
 
-    Raises ValueError for an unknown scenario (listing the valid ones) or bad sizes.
-    """
+    t_s: np.ndarray
+    tip_meas: np.ndarray
+    tip_seen: np.ndarray
+    tail_meas: np.ndarray
+    tail_seen: np.ndarray
+    rng_mask: np.random.Generator
+
+
+def _prepare(scenario: str, n_frames: int, seed: int, config: SimConfig | None) -> tuple[SimRun, _Pending]:
+    """Everything but the masks and frame records: trajectory, kinematics, keypoints, labels."""
     _check_args(scenario, n_frames, seed)
     cfg = config or SimConfig()
     cam, nd = cfg.camera, cfg.needle
@@ -495,36 +502,6 @@ def simulate_frames(
 
     tip_true, tip_ok, tip_seen, tip_meas = keypoint(nd.tip_m, cfg.tip_sigma_px, -1, traj.tip_dropout)
     tail_true, tail_ok, tail_seen, tail_meas = keypoint(nd.tail_m, cfg.tail_sigma_px, 0, np.zeros(F, bool))
-
-    masks: dict[int, np.ndarray] = {}
-    blobs: dict[int, list[Blob]] = {}
-    for k in range(0, F, cfg.mask_every):
-        missed = rng_mask.uniform() < cfg.mask_miss_prob
-        mask, fp = render_mask(
-            cam, T[k], nd, theta, traj.visible[k], rng_mask, cfg.mask_centreline_sigma_px, cfg.mask_edge_sigma_px,
-            cfg.mask_noise_length_px, cfg.mask_min_half_width_px, cfg.fp_blob_prob, cfg.fp_blob_axes_px,
-            cfg.fp_blob_min_distance_px,
-        )
-        if not missed and np.any(mask):
-            masks[k] = mask
-            blobs[k] = fp
-
-    labels = _occlusion_labels(traj.visible)
-    frames = []
-    for k in range(F):
-        frames.append(
-            FrameRecord(
-                frame=k,
-                t_s=float(t[k]),
-                tip_px=tip_meas[k].copy() if tip_seen[k] else None,
-                tail_px=tail_meas[k].copy() if tail_seen[k] else None,
-                mask=mask_path(k) if k in masks else None,
-                cam_T_grasper=recorded[k].copy(),
-                cam_T_needle_gt=T[k].copy(),
-                image=None,
-                occlusion=labels[k],
-            )
-        )
     info = RecordingInfo(
         name=f"{scenario}-{seed:02d}",
         frame_rate_hz=cfg.frame_rate_hz,
@@ -532,13 +509,13 @@ def simulate_frames(
         needle=nd,
         extra={"simulator": {"scenario": scenario, "seed": int(seed), "n_frames": F, "config": cfg.to_json()}},
     )
-    return SimRun(
+    run = SimRun(
         scenario=scenario,
         seed=int(seed),
         config=cfg,
         info=info,
-        frames=frames,
-        masks=masks,
+        frames=[],
+        masks={},
         cam_T_needle=T,
         cam_T_grasper=traj.cam_T_grasper,
         cam_T_grasper_recorded=recorded,
@@ -549,13 +526,59 @@ def simulate_frames(
         tail_px_true=tail_true,
         tip_detectable=tip_ok,
         tail_detectable=tail_ok,
-        occlusion=labels,
+        occlusion=_occlusion_labels(traj.visible),
         in_grasp_rad=traj.in_grasp_rad,
         slipping=traj.slipping,
         edge_on_deg=_edge_on_deg(T),
-        fp_blobs=blobs,
         tissue_plane=traj.tissue_plane,
     )
+    return run, _Pending(t, tip_meas, tip_seen, tail_meas, tail_seen, rng_mask)
+
+
+def _iter_frames(run: SimRun, pend: _Pending) -> Iterator[tuple[FrameRecord, np.ndarray | None, list[Blob]]]:
+    """Frame records in order, with the frame's mask (rendered now, None if none) and its false positives."""
+    cfg = run.config
+    for k in range(run.cam_T_needle.shape[0]):
+        mask, fp = None, []
+        if k % cfg.mask_every == 0:
+            missed = pend.rng_mask.uniform() < cfg.mask_miss_prob
+            m, fp = render_mask(
+                cfg.camera, run.cam_T_needle[k], cfg.needle, run.arc_theta, run.visible[k], pend.rng_mask,
+                cfg.mask_centreline_sigma_px, cfg.mask_edge_sigma_px, cfg.mask_noise_length_px,
+                cfg.mask_min_half_width_px, cfg.fp_blob_prob, cfg.fp_blob_axes_px, cfg.fp_blob_min_distance_px,
+            )
+            if not missed and np.any(m):
+                mask = m
+        rec = FrameRecord(
+            frame=k,
+            t_s=float(pend.t_s[k]),
+            tip_px=pend.tip_meas[k].copy() if pend.tip_seen[k] else None,
+            tail_px=pend.tail_meas[k].copy() if pend.tail_seen[k] else None,
+            mask=mask_path(k) if mask is not None else None,
+            cam_T_grasper=run.cam_T_grasper_recorded[k].copy(),
+            cam_T_needle_gt=run.cam_T_needle[k].copy(),
+            image=None,
+            occlusion=run.occlusion[k],
+        )
+        yield rec, mask, (fp if mask is not None else [])
+
+
+def simulate_frames(
+    scenario: str, n_frames: int = 300, seed: int = 0, config: SimConfig | None = None
+) -> SimRun:
+    """Simulate a run in memory (module docstring): recorded frames, masks and the noise-free truth.
+
+    Identical to what :func:`simulate` writes for the same arguments. Raises ValueError for an
+    unknown scenario (listing the valid ones) or bad sizes. Masks are kept in memory
+    (1.2 MB each at 1080x1080): for long runs prefer :func:`simulate`, which streams them.
+    """
+    run, pend = _prepare(scenario, n_frames, seed, config)
+    for rec, mask, fp in _iter_frames(run, pend):
+        run.frames.append(rec)
+        if mask is not None:
+            run.masks[rec.frame] = mask
+            run.fp_blobs[rec.frame] = fp
+    return run
 
 
 def render_image(run: SimRun, frame: int, background: np.ndarray | None = None) -> np.ndarray:
@@ -594,11 +617,10 @@ def simulate(
     from pinpoint_fg.io.recording import RecordingWriter
 
     out = Path(out)
-    run = simulate_frames(scenario, n_frames=n_frames, seed=seed, config=config)
+    run, pend = _prepare(scenario, n_frames, seed, config)
     background = run_background(run) if images else None
     with RecordingWriter(out, run.info) as writer:
-        for rec in run.frames:
-            k = rec.frame
-            img = render_image(run, k, background) if images else None
-            writer.add(rec, mask=run.masks.get(k), image=img)
+        for rec, mask, _ in _iter_frames(run, pend):
+            img = render_image(run, rec.frame, background) if images else None
+            writer.add(rec, mask=mask, image=img)
     return out

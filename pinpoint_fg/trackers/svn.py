@@ -13,12 +13,23 @@ Per frame (DESIGN.md §Inference):
    ``Jr^T H_i Jr``, the Stein step ``s_i`` (:func:`pinpoint_fg.stein.stein_step`, Eq. 14 with
    the kernel-weighted SVN Hessian by default) maps back to ``T_i <- T_i Exp(Jr(xi_i) s_i)``,
    and the older window poses follow by back-substitution (smoothing).
+   The step is computed in **S-whitened coordinates** (``xi / S``, ``S = diag(5 deg x3, 1 mm x3)``,
+   the kernel's scale): the Hessian's entries are in rad^-2 and m^-2, which differ by ~1e4, so
+   flooring its eigenvalues at ``eps * w_max`` in raw units would inflate every rotational
+   eigenvalue to the translational scale and freeze rotation. In whitened units the floor
+   bounds the condition number of a dimensionless matrix, as intended. (SVGD keeps raw units.)
 3. **Safeguard** — a moved particle whose negative log-posterior rises by more than
    ``collapse_nll`` has its step halved (up to 5 times) and otherwise stays put: repulsion may
    cost a little posterior, never a collapse.
 4. **Early stop** — when the 95th percentile of step sizes is below 0.1 mm and 0.5 deg and the
    best log-posterior changed by less than 0.02, two iterations in a row (paper §V-B).
-5. **Report** — MAP particle, q95 spread and covariance around it; with L > 1 the smoothed
+5. **Prune** — Stein transport cannot move particles between separated modes, so a mode the
+   evidence has ruled out would otherwise linger. Each hypothesis carries the evidence its
+   window marginalised (:attr:`pinpoint_fg.window.Window.evidence`, forgetting 0.9 per frame);
+   hypotheses whose total cost exceeds the best by ``prune_nll`` (relative density e^-30) are
+   replaced by jittered copies of surviving ones before the frame's transport. Genuinely
+   ambiguous modes (cost differences of a few nats) are untouched.
+6. **Report** — MAP particle (lowest total cost: evidence + window), q95 spread and covariance around it; with L > 1 the smoothed
    pose of frame k - L + 1. When every hypothesis is implausible (the best one's cost far above
    what the frame's residual count allows) the particles are re-seeded from this frame.
 
@@ -78,6 +89,12 @@ class SvnSettings:
     """Safeguard: largest accepted rise of a particle's negative log-posterior per step."""
     reseed_margin: float = 30.0
     """Re-seed when the best cost exceeds 2 x (residual count) + this margin and seeding does better."""
+    prune_nll: float = 30.0
+    """Hypotheses whose total cost exceeds the best by more than this are replaced (0 disables... use inf)."""
+    forgetting: float = 0.9
+    """Per-frame forgetting factor of each hypothesis's accumulated evidence."""
+    jitter_sigma: tuple[float, ...] = (np.deg2rad(1.0),) * 3 + (0.2e-3,) * 3
+    """Spread of the copies that replace pruned hypotheses, [omega x3 (rad), v x3 (m)]."""
 
 
 def implausible(best_nll: float, lik: FrameLikelihood, margin: float = 30.0) -> bool:
@@ -103,8 +120,9 @@ class SvnTracker(Tracker):
         noise = config.noise
         scale = np.array([self.svn.sigma_r_rad] * 3 + [self.svn.sigma_t_m] * 3)
         floor_scale = np.ones(6) if self.svn.isotropic else scale
+        self._S = np.ones(6) if self.svn.isotropic else scale
         self.stein = SteinConfig(
-            scale=tuple(scale),
+            scale=(1.0,) * 6,
             bandwidth_floor=noise.process_variance_whitened(floor_scale),
             eig_floor_rel=self.svn.eig_floor_rel,
             preconditioner=self.svn.preconditioner,
@@ -112,7 +130,7 @@ class SvnTracker(Tracker):
             step_size=self.svn.step_size,
             isotropic=self.svn.isotropic,
         )
-        self.window = Window(config.window, sqrt_information(noise.process_cov))
+        self.window = Window(config.window, sqrt_information(noise.process_cov), self.svn.forgetting)
         self._times: list[tuple[int, float]] = []
 
     @property
@@ -143,14 +161,15 @@ class SvnTracker(Tracker):
         for it in range(1, max_iters + 1):
             lin = self.window.linearize()
             value = lin.value
-            ref = int(np.argmin(value))
+            ref = int(np.argmin(value + self.window.evidence))
             T = self.window.newest
             xi = local(np.broadcast_to(T[ref], T.shape), T)
             Jr = se3_right_jacobian(xi)
             JrT = np.swapaxes(Jr, 1, 2)
             grad_logp = -np.einsum("nij,nj->ni", JrT, lin.grad)
             hess = JrT @ lin.hess @ Jr
-            step = stein_step(xi, grad_logp, hess, self.stein).step
+            S = self._S
+            step = S * stein_step(xi / S, grad_logp * S, hess * np.outer(S, S), self.stein).step
             delta = np.einsum("nij,nj->ni", Jr, step)
             # safeguard: halve steps whose particle's cost would collapse
             scale = np.ones(T.shape[0])
@@ -167,15 +186,30 @@ class SvnTracker(Tracker):
             self.window.move_newest(delta, lin)
             rot = np.linalg.norm(delta[:, :3], axis=1)
             tra = np.linalg.norm(delta[:, 3:], axis=1)
-            best = -float(np.min(value))
+            best = -float(np.min(value + self.window.evidence))
             small = np.quantile(tra, 0.95) < s.stop_trans_m and np.quantile(rot, 0.95) < s.stop_rot_rad
             steady = best_prev is not None and abs(best - best_prev) < s.stop_logp
             quiet = quiet + 1 if (small and steady) else 0
             best_prev = best
             if quiet >= 2:
                 break
-        final = self.window.linearize().value
+        final = self.window.linearize().value + self.window.evidence
         return it, final
+
+    def _prune(self) -> int:
+        """Replace hypotheses ruled out by the evidence with jittered copies of survivors; returns how many."""
+        total = self.window.linearize().value + self.window.evidence
+        dead = ~np.isfinite(total) | (total > np.nanmin(total) + self.svn.prune_nll)
+        n_dead = int(dead.sum())
+        if n_dead == 0:
+            return 0
+        alive = np.flatnonzero(~dead)
+        index = np.arange(total.shape[0])
+        index[dead] = self.rng.choice(alive, size=n_dead)
+        self.window.resample(index)
+        jitter = self.rng.normal(size=(n_dead, 6)) * np.asarray(self.svn.jitter_sigma)
+        self.window.poses[-1, dead] = self.window.poses[-1, dead] @ se3_exp(jitter)
+        return n_dead
 
     def step(self, observation: Observation) -> Estimate:
         """Process one frame (see the module docstring)."""
@@ -187,10 +221,12 @@ class SvnTracker(Tracker):
             self._seed(lik)
         else:
             self.window.push(lik, D, self.config.switches.motion)
+        pruned = self._prune()
         first = self.frames_seen < self.svn.first_frames
         iters, value = self._transport(self.svn.iters_first if first else self.svn.iters_later)
         if implausible(float(np.min(lik.nll(self.window.newest))), lik, self.svn.reseed_margin):
-            kept = self.window.poses.copy(), self.window.prior_mean.copy(), self.window.prior_W.copy()
+            kept = (self.window.poses.copy(), self.window.prior_mean.copy(), self.window.prior_W.copy(),
+                    self.window.evidence.copy())
             kept_frames = (list(self.window.frames), list(self.window.deltas), list(self.window.delta_W))
             old_best = float(np.min(lik.nll(self.window.newest)))
             self._seed(lik)
@@ -198,7 +234,7 @@ class SvnTracker(Tracker):
             if float(np.min(lik.nll(self.window.newest))) < old_best:
                 reseeded, iters, value = True, iters + it2, value2
             else:  # seeding did not explain the frame better: keep the tracked hypotheses
-                self.window.poses, self.window.prior_mean, self.window.prior_W = kept
+                self.window.poses, self.window.prior_mean, self.window.prior_W, self.window.evidence = kept
                 self.window.frames, self.window.deltas, self.window.delta_W = kept_frames
         latency_ms = 1e3 * (time.perf_counter() - t0)
         self.frames_seen += 1
@@ -214,6 +250,7 @@ class SvnTracker(Tracker):
             frame=observation.frame, t_s=observation.t_s, cam_T_needle=particles[i].copy(),
             q95_trans_m=q_t, q95_rot_rad=q_r, cov_xi=cov, iterations=iters, latency_ms=latency_ms,
             particles=particles, log_posterior=logp, smoothed=smoothed, reseeded=reseeded,
+            extra={"pruned": float(pruned)},
         )
 
 

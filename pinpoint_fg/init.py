@@ -36,8 +36,9 @@ class InitConfig:
     """Grid resolution of each swept angle (36 -> 10 degrees)."""
     polish_iters: int = 6
     """Batched Gauss-Newton steps applied to every candidate before choosing modes."""
-    max_modes: int = 4
-    """At most this many distinct modes receive particles."""
+    max_modes: int = 8
+    """At most this many distinct modes receive particles (the two circle poses, each possibly
+    flipped about the grasp point when no keypoint tells tip from tail, plus near-ties)."""
     mode_nll_margin: float = 25.0
     """A mode is kept if its cost is within this of the best (about exp(-25) relative density)."""
     mode_separation: tuple[float, float] = (np.deg2rad(15.0), 3e-3)

@@ -12,7 +12,7 @@ from factors.lie import local
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.trackers.base import TrackerConfig
 from pinpoint_fg.trackers.map import MapConfig, MapTracker, gaussian_q95, live_factors
-from tests.test_trackers_pf import CAMERA, NEEDLE, pose_error, synthetic_sequence
+from tests.test_trackers_pf import CAMERA, NEEDLE, observe, pose_error, synthetic_sequence
 
 TIGHT = MapConfig(relative_error_tol=1e-14, absolute_error_tol=1e-14, max_iterations=200)
 
@@ -30,8 +30,14 @@ def _graph(factors: list) -> gtsam.NonlinearFactorGraph:
 
 @pytest.mark.parametrize("window", [1, 3])
 def test_smoother_equals_plain_lm_of_the_same_window(window: int) -> None:
-    """Before each step, the window's factors + this frame's, from the same initial values, solved by LM."""
-    seq = synthetic_sequence(6, seed=11)
+    """Before each step, the window's factors + this frame's, from the same initial values, solved by LM.
+
+    Exact (1e-8) while no pose of the window touches a marginal factor (the first ``window + 1``
+    frames). Afterwards GTSAM's batch smoother keeps those poses' linearisation points fixed
+    (``enforceConsistency``), so its optimum differs from plain LM's at second order: required to
+    be a negligible fraction of the posterior spread (Mahalanobis < 0.02; measured <= 0.01).
+    """
+    seq = synthetic_sequence(8, seed=11)
     tr = MapTracker(_config(window), TIGHT)
     for obs in seq.observations:
         old_factors = live_factors(tr.smoother.getFactors()) if tr.smoother is not None else []
@@ -45,16 +51,20 @@ def test_smoother_equals_plain_lm_of_the_same_window(window: int) -> None:
         graph = _graph(old_factors + live_factors(new_graph))
         lm = gtsam.LevenbergMarquardtOptimizer(graph, values, TIGHT.lm_params()).optimize()
         key = tr.newest_key
-        # every pose still in the window agrees
-        kept = [k for k in list(tr.smoother.calculateEstimate().keys())]
+        kept = list(tr.smoother.calculateEstimate().keys())
         assert key in kept and len(kept) == min(window, key + 1)
+        cov_lm = gtsam.Marginals(graph, lm).marginalCovariance(key)
+        assert np.allclose(est.cam_T_needle, tr.smoother.calculateEstimatePose3(key).matrix())
         for k in kept:
             xi = local(lm.atPose3(k).matrix(), tr.smoother.calculateEstimatePose3(k).matrix())
-            assert np.abs(xi[:3]).max() < 1e-6 and np.abs(xi[3:]).max() < 1e-7, (key, k, xi)
-        assert np.allclose(est.cam_T_needle, tr.smoother.calculateEstimatePose3(key).matrix())
+            if key <= window:
+                assert np.abs(xi).max() < 1e-8, (key, k, xi)
+            else:
+                cov_k = gtsam.Marginals(graph, lm).marginalCovariance(k)
+                assert np.sqrt(xi @ np.linalg.solve(cov_k, xi)) < 0.02, (key, k, xi)
         # the reported covariance is GTSAM's marginal of that LM solution
-        cov_lm = gtsam.Marginals(graph, lm).marginalCovariance(key)
-        assert np.allclose(est.cov_xi, cov_lm, rtol=1e-4, atol=1e-4 * np.abs(cov_lm).max())
+        rtol = 1e-8 if key <= window else 5e-3
+        assert np.abs(est.cov_xi - cov_lm).max() < rtol * np.abs(cov_lm).max()
 
 
 def test_no_image_evidence_and_no_factors_at_all() -> None:
@@ -92,21 +102,26 @@ def test_first_frame_without_any_evidence() -> None:
 
 
 def test_window_three_produces_smoothed_estimates() -> None:
-    seq = synthetic_sequence(8, seed=13, mask_every=3)
+    seq = synthetic_sequence(24, seed=13, mask_every=3)
     tr = MapTracker(_config(window=3))
-    errs_newest, errs_smoothed = [], []
+    filtered, smoothed = {}, {}
     for k, obs in enumerate(seq.observations):
         est = tr.step(obs)
         assert len(list(tr.smoother.calculateEstimate().keys())) == min(3, k + 1)
+        filtered[k] = pose_error(est.cam_T_needle, seq.cam_T_needle[k])
         if k < 2:
             assert est.smoothed is None
             continue
         frame, t_s, pose = est.smoothed
         assert frame == k - 2 and t_s == seq.observations[k - 2].t_s
         assert np.allclose(pose, tr.smoother.calculateEstimatePose3(tr.newest_key - 2).matrix())
-        errs_smoothed.append(pose_error(pose, seq.cam_T_needle[frame])[0])
-        errs_newest.append(pose_error(est.cam_T_needle, seq.cam_T_needle[k])[0])
-    assert max(errs_smoothed) < 0.5e-3 and max(errs_newest) < 0.5e-3
+        smoothed[frame] = pose_error(pose, seq.cam_T_needle[frame])
+    frames = sorted(smoothed)
+    f = np.array([filtered[k] for k in frames])
+    s = np.array([smoothed[k] for k in frames])
+    assert s[:, 0].max() < 1e-3
+    # two later frames refine the estimate: smaller mean rotation error than filtering (measured ~15 %)
+    assert s[:, 1].mean() < f[:, 1].mean()
     assert tr.settings()["window"] == 3 and tr.settings()["lag"] == 2.0
 
 
@@ -114,7 +129,7 @@ def test_window_one_has_no_smoothed_estimate_and_tracks() -> None:
     seq = synthetic_sequence(10, seed=14)
     tr = MapTracker(_config())
     errs = []
-    for obs, T in zip(seq.observations, seq.cam_T_needle):
+    for obs, T in zip(seq.observations, seq.cam_T_needle, strict=True):
         est = tr.step(obs)
         assert est.smoothed is None and est.weights is None
         assert est.particles.shape == (1, 4, 4) and est.log_posterior.shape == (1,)
@@ -153,16 +168,12 @@ def test_reseeds_from_a_hopeless_track() -> None:
     tr.step(seq.observations[0])
     # the needle jumps 12 mm between frames with kinematics that do not see it: the motion factor
     # holds the old pose and the frame cannot be explained
-    obs = seq.observations[1]
     T = seq.cam_T_needle[1].copy()
     T[:3, 3] += [0.012, 0.0, 0.0]
-    from tests.test_trackers_pf import observe
-
     jumped = observe(T, np.random.default_rng(0), kinematics=False, frame=1)
     est = tr.step(jumped)
     assert est.reseeded
     assert pose_error(est.cam_T_needle, T)[0] < 0.5e-3
-    assert obs.frame == 1
 
 
 def test_gaussian_q95() -> None:

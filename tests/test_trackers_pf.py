@@ -240,7 +240,7 @@ def test_tracks_a_synthetic_sequence() -> None:
     seq = synthetic_sequence(10, seed=6)
     pf = ParticleFilterTracker(_config(particles=1000, seed=1))
     errs = []
-    for obs, T_gt in zip(seq.observations, seq.cam_T_needle):
+    for obs, T_gt in zip(seq.observations, seq.cam_T_needle, strict=True):
         est = pf.step(obs)
         assert not est.reseeded
         errs.append(pose_error(est.cam_T_needle, T_gt))

@@ -13,8 +13,10 @@ needle's plane and centre but not where the arc lies on the circle, so:
 1. sweep the in-plane angle on a grid (``angle_steps``, both normal orientations) and score
    every candidate with the frame's :class:`~pinpoint_fg.likelihood.FrameLikelihood` — the same
    terms, switches and noise the tracker used;
-2. polish the ``candidates`` best grid poses, and ``T_gt`` itself, with the same batched damped
-   Gauss-Newton (:func:`pinpoint_fg.init.polish`) on all six degrees of freedom;
+2. polish the ``candidates`` best grid poses, and ``T_gt`` itself, by batched Levenberg-Marquardt
+   on all six degrees of freedom (:func:`polish_to_convergence`: Gauss-Newton information with
+   eigenvalues floored at 1e-6 of the largest, a step is kept only if it lowers the NLL, until the
+   Gauss-Newton decrement ``1/2 g^T H^-1 g`` of every pose is below ``decrement_tol`` nats);
 3. keep a polished alternative only if it stayed in its mode: its plane normal must remain
    closer (as a line, ``arccos |n . n'|``) to the alternative's than to the truth's. If every
    polished candidate drifted back to the truth, the best *unpolished* grid pose is used (its
@@ -49,11 +51,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from factors.lie import se3_exp
 from pinpoint_fg.eval.metrics import PoseErrors, pose_errors
-from pinpoint_fg.init import circle_poses_from_conic, polish
+from pinpoint_fg.init import circle_poses_from_conic
 from pinpoint_fg.io.recording import Recording
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.observe import observe_frame
+from pinpoint_fg.stein import floor_hessians
 
 AMBIGUOUS_BELOW = 2.3
 """ΔNLL below this: the alternative circle pose holds >= ~10 % of the mass (exp(-2.3) = 0.10)."""
@@ -72,8 +76,10 @@ class AmbiguityConfig:
     """In-plane angles swept for the alternative pose (per normal orientation; 72 -> 5 degrees)."""
     candidates: int = 3
     """Best grid poses polished by Gauss-Newton."""
-    polish_iters: int = 12
-    """Damped Gauss-Newton iterations of every polish (truth and alternatives)."""
+    polish_iters: int = 60
+    """At most this many Levenberg-Marquardt iterations per polish (truth and alternatives)."""
+    decrement_tol: float = 1e-2
+    """A polish stops when every pose's Gauss-Newton decrement is below this, nats."""
     min_mode_separation_deg: float = 5.0
     """Closed-form planes closer than this (angle between normals) are one mode: ΔNLL = +inf."""
 
@@ -156,6 +162,40 @@ def _in_plane_poses(centre: np.ndarray, normal: np.ndarray, steps: int) -> np.nd
     return np.concatenate(out, axis=0)
 
 
+def polish_to_convergence(
+    lik: FrameLikelihood, cam_T_needle: np.ndarray, max_iters: int = 60, decrement_tol: float = 1e-2
+) -> tuple[np.ndarray, np.ndarray]:
+    """Batched Levenberg-Marquardt on poses (N, 4, 4) -> polished poses (N, 4, 4) and their NLL (N,).
+
+    Per pose: ``H~`` = the Gauss-Newton information with eigenvalues floored at ``1e-6 w_max``
+    (:func:`pinpoint_fg.stein.floor_hessians`), step ``-(H~ + lam diag H~)^-1 g`` in the right
+    chart, kept only if the NLL decreases (then ``lam /= 3``, else ``lam *= 10``; ``lam`` starts at
+    1e-3). A pose stops once its decrement ``1/2 g^T H~^-1 g`` is below ``decrement_tol`` (only the
+    others are iterated on); all stop after ``max_iters``. Directions the frame does not observe
+    get no information and do not move.
+    """
+    T = np.array(cam_T_needle, dtype=float)
+    lam = np.full(T.shape[0], 1e-3)
+    nll, g, H = lik.gauss_newton(T)
+    eye = np.eye(6)
+    for _ in range(int(max_iters)):
+        Hf, Hinv = floor_hessians(H, eps=1e-6)
+        active = np.nonzero(0.5 * np.einsum("ni,nij,nj->n", g, Hinv, g) >= decrement_tol)[0]
+        if active.size == 0:
+            break
+        Ha = Hf[active]
+        diag = np.einsum("nii->ni", Ha)
+        A = Ha + lam[active, None, None] * diag[:, :, None] * eye
+        step = -np.linalg.solve(A, g[active][..., None])[..., 0]
+        Tn = T[active] @ se3_exp(step)
+        nll_n, g_n, H_n = lik.gauss_newton(Tn)
+        better = nll_n < nll[active]
+        acc = active[better]
+        T[acc], nll[acc], g[acc], H[acc] = Tn[better], nll_n[better], g_n[better], H_n[better]
+        lam[active] = np.where(better, lam[active] / 3.0, lam[active] * 10.0)
+    return T, nll
+
+
 def analyse_frame(
     lik: FrameLikelihood,
     cam_T_gt: np.ndarray,
@@ -178,7 +218,7 @@ def analyse_frame(
         start = np.concatenate([T_gt[None], grid[order]], axis=0)
     else:
         start = T_gt[None]
-    polished, nll = polish(lik, start, config.polish_iters)
+    polished, nll = polish_to_convergence(lik, start, config.polish_iters, config.decrement_tol)
 
     # truth mode: fall back to T_gt if the polish crossed to the alternative plane
     T_truth, nll_truth = polished[0], float(nll[0])

@@ -30,7 +30,9 @@ from pinpoint_fg.eval.bimodality import BimodalityVerdict, principal_plane
 
 AXIS_COLOURS = ("#1b9e77", "#d95f02", "#7570b3")
 """X (green), Y (orange), Z (purple), as in the paper."""
-METHOD_COLOURS = ("#3b75af", "#e377c2", "#8c8c8c", "#2ca02c", "#ff7f0e", "#9467bd", "#17becf", "#bcbd22", "#d62728")
+METHOD_COLOURS = (
+    "#3b75af", "#e377c2", "#8c8c8c", "#2ca02c", "#ff7f0e", "#9467bd", "#17becf", "#bcbd22", "#d62728",
+)
 """Colours cycled over methods."""
 OCCLUSION_LEVEL = {"none": 0, "partial": 1, "heavy": 2}
 """Occlusion label -> plotted level."""
@@ -110,9 +112,11 @@ def error_distributions(groups: Sequence[tuple[str, Sequence[MethodErrors]]], pa
     for c, (title, methods) in enumerate(groups):
         pos = np.arange(len(methods), dtype=float)
         labels = [m.label for m in methods]
-        for r, (key, axes_key, unit) in enumerate(
-            (("trans_mm", "trans_axes_mm", "translation error (mm)"), ("rot_deg", "rot_axes_deg", "rotation error (deg)"))
-        ):
+        panels = (
+            ("trans_mm", "trans_axes_mm", "translation error (mm)"),
+            ("rot_deg", "rot_axes_deg", "rotation error (deg)"),
+        )
+        for r, (key, axes_key, unit) in enumerate(panels):
             ax = fig.add_subplot(gs[2 * r, c])
             for i, m in enumerate(methods):
                 _half_violin(ax, getattr(m, key), pos[i], METHOD_COLOURS[i % len(METHOD_COLOURS)], rng)
@@ -182,7 +186,8 @@ def error_over_time(
         ax.step(t, levels, where="mid", color="#7f7f7f")
         ax.fill_between(t, 0, np.nan_to_num(levels), step="mid", color="#7f7f7f", alpha=0.3, linewidth=0)
     else:
-        ax.text(0.5, 0.5, "occlusion not labelled", transform=ax.transAxes, ha="center", va="center", fontsize=8)
+        ax.text(0.5, 0.5, "occlusion not labelled", transform=ax.transAxes, ha="center", va="center",
+                fontsize=8)
     ax.set_yticks([0, 1, 2], ["none", "partial", "heavy"], fontsize=7)
     ax.set_ylim(-0.2, 2.3)
     ax.set_xlabel("time (s)", fontsize=9)

@@ -35,6 +35,12 @@ Kinematic noise (what the robot reports vs. where the grasper is)
       ``E[sin² β] = (1 − exp(−2 s²)) / 2 = σ⊥²`` (σ⊥ = 0.138, Table I → s = 0.1393 rad).
       ``α`` and ``γ`` (std ``grasper_rot_sigma_rad``, default 2°) tilt the recorded grasper in
       the directions no residual but the motion model sees.
+
+Calibrating from simulated runs
+    The bias decorrelates over ``τ``: a 10 s run holds only ~2.7 effective samples of it, so
+    one run's sample std is ~0.67 σ and its sample mean is that run's bias, not zero. Pool
+    several seeds or use long runs (100 s: ~21 effective samples, within-run std ~0.95 σ)
+    when estimating the kinematic noise (``pinpoint-fg calibrate``).
 """
 
 from __future__ import annotations

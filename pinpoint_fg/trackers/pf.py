@@ -103,9 +103,15 @@ def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.nda
 
 
 def propagate(
-    cam_T_needle: np.ndarray, cam_delta: np.ndarray | None, sigma: np.ndarray, rng: np.random.Generator
+    cam_T_needle: np.ndarray,
+    cam_delta: np.ndarray | None,
+    sigma: np.ndarray | tuple[float, ...],
+    rng: np.random.Generator,
 ) -> np.ndarray:
-    """Motion model ``D T_i Exp(n_i)``, ``n_i ~ N(0, diag(sigma^2))`` ``[omega; v]``; D = identity if None. (N, 4, 4)."""
+    """Motion model: poses (N, 4, 4) -> ``D T_i Exp(n_i)`` (N, 4, 4), ``n_i ~ N(0, diag(sigma^2))``.
+
+    ``sigma`` (6,) is ``[omega (rad) x3, v (m) x3]``; ``cam_delta`` None means ``D = I``.
+    """
     T = np.asarray(cam_T_needle, dtype=float)
     noise = rng.normal(size=(T.shape[0], 6)) * np.asarray(sigma, dtype=float)
     moved = T if cam_delta is None else np.asarray(cam_delta, dtype=float) @ T

@@ -26,9 +26,13 @@ Per frame (DESIGN.md §Inference):
 5. **Prune** — Stein transport cannot move particles between separated modes, so a mode the
    evidence has ruled out would otherwise linger. Each hypothesis carries the evidence its
    window marginalised (:attr:`pinpoint_fg.window.Window.evidence`, forgetting 0.9 per frame);
-   hypotheses whose total cost exceeds the best by ``prune_nll`` (relative density e^-30) are
-   replaced by jittered copies of surviving ones before the frame's transport. Genuinely
-   ambiguous modes (cost differences of a few nats) are untouched.
+   after transport, hypotheses whose *mode* is ruled out are replaced by copies of surviving
+   ones (jittered at the next frame's prediction so the transport spreads them again). Modes,
+   not particles, are compared: each particle's cost is replaced by the Gauss-Newton
+   prediction of its local optimum, ``c_i - 1/2 g_i^T H_i^-1 g_i`` (plus its evidence), which is
+   the same for every particle of one mode however far repulsion has spread them; a particle
+   is pruned when that exceeds the best by ``prune_nll`` (relative density e^-30). Genuinely
+   ambiguous modes (a few nats apart) are untouched.
 6. **Report** — MAP particle (lowest total cost: evidence + window), q95 spread and covariance around it; with L > 1 the smoothed
    pose of frame k - L + 1. When every hypothesis is implausible (the best one's cost far above
    what the frame's residual count allows) the particles are re-seeded from this frame.
@@ -47,7 +51,7 @@ from factors.lie import local, se3_exp, se3_right_jacobian
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.stein import SteinConfig, stein_step
+from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, summarize
 from pinpoint_fg.window import Window, sqrt_information
 
@@ -193,23 +197,37 @@ class SvnTracker(Tracker):
             best_prev = best
             if quiet >= 2:
                 break
-        final = self.window.linearize().value + self.window.evidence
+        lin = self.window.linearize()
+        final = lin.value + self.window.evidence
+        # GN-predicted optimum of each particle's local mode (for pruning): c - 1/2 g^T H^-1 g
+        S = self._S
+        _, Hinv = floor_hessians(lin.hess * np.outer(S, S), eps=1e-6)
+        gw = lin.grad * S
+        drop = 0.5 * np.einsum("ni,nij,nj->n", gw, Hinv, gw)
+        self._mode_value = final - np.clip(drop, 0.0, np.maximum(lin.value, 0.0))
         return it, final
 
-    def _prune(self) -> int:
-        """Replace hypotheses ruled out by the evidence with jittered copies of survivors; returns how many."""
-        total = self.window.linearize().value + self.window.evidence
+    def _prune(self, total: np.ndarray) -> int:
+        """Replace hypotheses ruled out by the evidence (``total`` cost (N,)) with copies of survivors."""
         dead = ~np.isfinite(total) | (total > np.nanmin(total) + self.svn.prune_nll)
         n_dead = int(dead.sum())
+        self._pending_jitter = dead
         if n_dead == 0:
             return 0
         alive = np.flatnonzero(~dead)
         index = np.arange(total.shape[0])
         index[dead] = self.rng.choice(alive, size=n_dead)
         self.window.resample(index)
-        jitter = self.rng.normal(size=(n_dead, 6)) * np.asarray(self.svn.jitter_sigma)
-        self.window.poses[-1, dead] = self.window.poses[-1, dead] @ se3_exp(jitter)
+        total[dead] = total[index[dead]]
         return n_dead
+
+    def _jitter_copies(self) -> None:
+        """Spread last frame's copies (:meth:`_prune`) so the transport can separate them."""
+        dead = getattr(self, "_pending_jitter", None)
+        if dead is None or not dead.any() or self.window.poses is None or dead.shape[0] != self.window.poses.shape[1]:
+            return
+        jitter = self.rng.normal(size=(int(dead.sum()), 6)) * np.asarray(self.svn.jitter_sigma)
+        self.window.poses[-1, dead] = self.window.poses[-1, dead] @ se3_exp(jitter)
 
     def step(self, observation: Observation) -> Estimate:
         """Process one frame (see the module docstring)."""
@@ -221,7 +239,7 @@ class SvnTracker(Tracker):
             self._seed(lik)
         else:
             self.window.push(lik, D, self.config.switches.motion)
-        pruned = self._prune()
+            self._jitter_copies()
         first = self.frames_seen < self.svn.first_frames
         iters, value = self._transport(self.svn.iters_first if first else self.svn.iters_later)
         if implausible(float(np.min(lik.nll(self.window.newest))), lik, self.svn.reseed_margin):
@@ -236,6 +254,7 @@ class SvnTracker(Tracker):
             else:  # seeding did not explain the frame better: keep the tracked hypotheses
                 self.window.poses, self.window.prior_mean, self.window.prior_W, self.window.evidence = kept
                 self.window.frames, self.window.deltas, self.window.delta_W = kept_frames
+        pruned = self._prune(self._mode_value.copy())
         latency_ms = 1e3 * (time.perf_counter() - t0)
         self.frames_seen += 1
         self._times.append((observation.frame, observation.t_s))

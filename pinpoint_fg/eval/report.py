@@ -1,0 +1,621 @@
+"""Evaluation of tracking results: metrics, the paper's tables, figures (``pinpoint-fg evaluate``).
+
+:func:`evaluate` reads result directories (v1 format) and their recordings (the path stored in
+``result.json`` unless one is given) and computes, per result, on the frames that have ground
+truth:
+
+* accuracy: translation / rotation errors, per camera axis, mean ± std
+  (:func:`~pinpoint_fg.eval.metrics.summarize_errors`), latency median and 95th percentile;
+* uncertainty: mean predicted q95, NLL-S and interval score from the result's q95 columns;
+* bimodality, recomputed from the stored particles with the MAP and the truth
+  (:func:`~pinpoint_fg.eval.bimodality.assess_bimodality`; a set with fewer than six particles,
+  e.g. the MAP method's single one, is never bimodal): the raw ``bimodal_share`` (all frames
+  with particles), ``truth_in_dominant_share`` (bimodal frames with truth), and — judged
+  against the truth about ambiguity (:mod:`pinpoint_fg.eval.ambiguity`) — the bimodal rate on
+  *ambiguous* frames (sensitivity, ``bimodal_ambiguous_rate``) and on *clear* frames (the
+  false-bimodal rate, ``bimodal_clear_rate``);
+* the accuracy floor (per-frame MAP solved from the truth with the result's own likelihood:
+  its switches and noise file) and the method's mean error as a multiple of it;
+* occlusion breakdown of the mean errors (``none`` / ``partial`` / ``heavy``).
+
+The ΔNLL labels and the floor depend on the recording and the frame likelihood only (the
+likelihood switches and the noise, not the method), so they are computed once per
+(recording, switches without ``motion``, noise file) and shared by every result that uses them.
+
+Files written to ``out``: ``summary.csv`` (one row per result), ``tables.md`` (Table II shaped
+like the paper's; Table III when results carry ablation settings; a multimodality table), and
+PNG figures (:mod:`pinpoint_fg.eval.plots`): ``errors.png``, ``error_time_<result>.png``,
+``particle_cloud_<recording>.png``, ``ablation_<recording>.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.eval import plots
+from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
+from pinpoint_fg.eval.bimodality import assess_bimodality, systematic_resample, tangent_at_map
+from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
+from pinpoint_fg.io.recording import Recording, read_recording
+from pinpoint_fg.io.result import Result, read_result
+from pinpoint_fg.likelihood import MeasurementModel, Switches
+from pinpoint_fg.noise import NoiseConfig
+
+#: The ablation matrix of the paper's Table III: (variant name, method, disabled switches, title).
+ABLATION_VARIANTS: tuple[tuple[str, str, tuple[str, ...], str], ...] = (
+    ("full", "svn", (), "All (full model)"),
+    ("no-dense", "svn", ("dense",), "No dense image"),
+    ("one-keypoint", "svn", ("tip",), "1 sparse keypoint"),
+    ("no-keypoints", "svn", ("sparse",), "No sparse keypoints"),
+    ("no-image", "svn", ("dense", "sparse"), "No image"),
+    ("no-grasp-position", "svn", ("grasp-position",), "No robot position"),
+    ("no-grasp-perpendicular", "svn", ("grasp-perpendicular",), "No robot orientation"),
+    (
+        "no-robot-no-motion", "svn", ("grasp-position", "grasp-perpendicular", "motion"),
+        "No robot & no motion model",
+    ),
+    ("svgd", "svgd", (), "SVGD (no Hessian)"),
+)
+
+#: Columns of summary.csv, in order (the uncertainty/accuracy keys are those of summarize_errors).
+SUMMARY_COLUMNS: tuple[str, ...] = (
+    "method", "variant", "recording", "result", "complete", "frames",
+    "trans_mean_mm", "trans_std_mm", "rot_mean_deg", "rot_std_deg",
+    "trans_x_mean_mm", "trans_x_std_mm", "trans_y_mean_mm", "trans_y_std_mm",
+    "trans_z_mean_mm", "trans_z_std_mm",
+    "rot_x_mean_deg", "rot_x_std_deg", "rot_y_mean_deg", "rot_y_std_deg", "rot_z_mean_deg", "rot_z_std_deg",
+    "trans_q95_mm", "rot_q95_deg", "nlls_trans", "nlls_rot", "is_trans", "is_rot",
+    "bimodal_share", "truth_in_dominant_share", "bimodal_frames",
+    "ambiguous_frames", "clear_frames", "bimodal_ambiguous_rate", "bimodal_clear_rate",
+    "floor_trans_mm", "floor_rot_deg", "trans_floor_multiple", "rot_floor_multiple",
+    "trans_mm_none", "trans_mm_partial", "trans_mm_heavy", "rot_deg_none", "rot_deg_partial", "rot_deg_heavy",
+    "latency_median_ms", "latency_p95_ms",
+)
+
+
+# --------------------------------------------------------------------------------------------
+# identifying results
+
+
+def normalized_disabled(disabled: Sequence[str]) -> tuple[str, ...]:
+    """Canonical, sorted ``--disable`` names (``tip`` + ``tail`` -> ``sparse``)."""
+    return tuple(sorted(Switches.from_disabled(tuple(disabled)).disabled()))
+
+
+def variant_name(method: str, disabled: Sequence[str]) -> str:
+    """Ablation variant of (method, disabled switches): an :data:`ABLATION_VARIANTS` name or a description."""
+    key = normalized_disabled(disabled)
+    for name, m, dis, _ in ABLATION_VARIANTS:
+        if m == method and tuple(sorted(dis)) == key:
+            return name
+    if method == "svgd" and not key:
+        return "svgd"
+    return "full" if not key else "disable-" + "+".join(key)
+
+
+def _variant_title(name: str) -> str:
+    for v, _, _, title in ABLATION_VARIANTS:
+        if v == name:
+            return title
+    return name
+
+
+def _settings_of(res: Result) -> dict:
+    s = res.info.get("settings")
+    return s if isinstance(s, dict) else {}
+
+
+def _disabled_of(res: Result) -> tuple[str, ...]:
+    d = _settings_of(res).get("disabled") or ()
+    if isinstance(d, str):
+        d = [x for x in d.split(",") if x]
+    try:
+        return normalized_disabled(tuple(str(x) for x in d))
+    except ValueError as exc:
+        raise InputError(f'key "settings.disabled": {exc}', file=res.root / "result.json") from None
+
+
+def _noise_of(res: Result) -> tuple[NoiseConfig, str | None]:
+    path = _settings_of(res).get("noise_file")
+    if not path:
+        return NoiseConfig(), None
+    p = Path(str(path))
+    if not p.is_absolute() and not p.exists():
+        p = res.root / p
+    return NoiseConfig.load(p), str(p.resolve())
+
+
+# --------------------------------------------------------------------------------------------
+# per-result evaluation
+
+
+@dataclass
+class ResultEvaluation:
+    """Everything computed for one result (arrays have the result's frame axis first)."""
+
+    result: Result
+    """The result read from disk."""
+    recording: Recording
+    """Its recording."""
+    method: str
+    """Tracking method."""
+    variant: str
+    """Ablation variant name (``full`` without disabled switches)."""
+    label: str
+    """Display name (unique among the evaluated results)."""
+    T_gt: np.ndarray
+    """(F, 4, 4) ground truth (NaN where unknown)."""
+    has_gt: np.ndarray
+    """(F,) bool."""
+    errors: PoseErrors
+    """Pose errors of the MAP estimates."""
+    bimodal: np.ndarray
+    """(F,) bool, recomputed from the particles (False where not assessed)."""
+    assessed: np.ndarray
+    """(F,) bool: frames whose particle set was assessed."""
+    ashman_d: np.ndarray
+    """(F,) Ashman's D of the two-component fit (NaN where not assessed / degenerate)."""
+    labels: np.ndarray
+    """(F,) ambiguity labels of the frames."""
+    floor_errors: PoseErrors
+    """Errors of the accuracy-floor poses at these frames."""
+    occlusion: list
+    """(F,) occlusion labels (None where unknown)."""
+    row: dict = field(default_factory=dict)
+    """The summary.csv row."""
+
+
+def _recording_for(res: Result, given: Recording | None, cache: dict[Path, Recording]) -> Recording:
+    if given is not None:
+        rec = given
+    else:
+        path = res.info.get("recording_path")
+        if not path:
+            raise InputError(
+                'key "recording_path" is empty: pass the recording explicitly (--recording)',
+                file=res.root / "result.json",
+            )
+        p = Path(str(path))
+        if not p.is_absolute() and not p.exists():
+            p = res.root / p
+        key = p.resolve()
+        if key not in cache:
+            cache[key] = read_recording(p)
+        rec = cache[key]
+    if str(res.info.get("recording_name")) != rec.info.name:
+        raise InputError(
+            f"result is of recording {res.info.get('recording_name')!r}, the recording is {rec.info.name!r}",
+            file=res.root / "result.json", column="recording_name",
+        )
+    return rec
+
+
+def _rows_in_recording(res: Result, recording: Recording) -> np.ndarray:
+    pos = {int(r.frame): i for i, r in enumerate(recording.frames)}
+    idx = np.array([pos.get(int(f), -1) for f in res.frame], dtype=int)
+    if np.any(idx < 0):
+        bad = int(res.frame[int(np.argmax(idx < 0))])
+        raise InputError(f"frame {bad} is not in recording {recording.root}", file=res.root / "estimates.csv",
+                         row=int(np.argmax(idx < 0)) + 1, column="frame")
+    return idx
+
+
+def _assess(res: Result, T_gt: np.ndarray, has_gt: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-frame bimodal (F,), assessed (F,), Ashman D (F,), truth-in-dominant (F,) float (NaN if n/a)."""
+    F = len(res)
+    bimodal = np.zeros(F, dtype=bool)
+    assessed = np.zeros(F, dtype=bool)
+    d = np.full(F, np.nan)
+    tid = np.full(F, np.nan)
+    P = res.particles
+    if P is None:
+        return bimodal, assessed, d, tid
+    n_frames, n = P.cam_T_needle.shape[:2]
+    assessed[:n_frames] = True
+    if n < 6:
+        return bimodal, assessed, d, tid
+    with threadpool_limits(1):  # tiny EM problems: thread start-up would dominate
+        for f in range(n_frames):
+            v = assess_bimodality(
+                P.cam_T_needle[f], res.cam_T_needle[f], weights=None if P.weight is None else P.weight[f],
+                T_gt=T_gt[f] if has_gt[f] else None,
+            )
+            bimodal[f] = v.bimodal
+            d[f] = v.ashman_d
+            if v.truth_in_dominant is not None:
+                tid[f] = float(v.truth_in_dominant)
+    return bimodal, assessed, d, tid
+
+
+def _mean(x: np.ndarray) -> float:
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    return float(np.mean(x)) if x.size else float("nan")
+
+
+def _evaluate_one(
+    res: Result, recording: Recording, amb: RecordingAmbiguity, variant: str, label: str
+) -> ResultEvaluation:
+    idx = _rows_in_recording(res, recording)
+    F = len(res)
+    T_gt = np.full((F, 4, 4), np.nan)
+    for i, k in enumerate(idx):
+        g = recording.frames[k].cam_T_needle_gt
+        if g is not None:
+            T_gt[i] = g
+    has_gt = np.all(np.isfinite(T_gt), axis=(1, 2))
+    errors = pose_errors(res.cam_T_needle, T_gt)
+    summary = summarize_errors(errors, res.q95_trans_m, res.q95_rot_rad, mask=has_gt)
+    bimodal, assessed, ashman, tid = _assess(res, T_gt, has_gt)
+
+    aidx = amb.index_of(res.frame)
+    labels = amb.labels[aidx]
+    floor = PoseErrors(
+        trans_m=amb.floor_errors.trans_m[aidx], rot_rad=amb.floor_errors.rot_rad[aidx],
+        trans_axes_m=amb.floor_errors.trans_axes_m[aidx], rot_axes_rad=amb.floor_errors.rot_axes_rad[aidx],
+    )
+    occlusion = [recording.frames[k].occlusion for k in idx]
+
+    row: dict = {
+        "method": res.method, "variant": variant, "recording": recording.info.name, "result": str(res.root),
+        "complete": int(res.complete),
+    }
+    row.update(summary)
+    row["bimodal_share"] = float(np.mean(bimodal[assessed])) if assessed.any() else float("nan")
+    row["bimodal_frames"] = int(bimodal.sum())
+    row["truth_in_dominant_share"] = _mean(tid[bimodal & has_gt])
+    amb_sel = assessed & (labels == "ambiguous")
+    clear_sel = assessed & (labels == "clear")
+    row["ambiguous_frames"] = int(amb_sel.sum())
+    row["clear_frames"] = int(clear_sel.sum())
+    row["bimodal_ambiguous_rate"] = float(np.mean(bimodal[amb_sel])) if amb_sel.any() else float("nan")
+    row["bimodal_clear_rate"] = float(np.mean(bimodal[clear_sel])) if clear_sel.any() else float("nan")
+    use = has_gt & np.isfinite(errors.trans_m) & np.isfinite(floor.trans_m)
+    if use.any():
+        ft, fr = float(np.mean(floor.trans_m[use])), float(np.mean(floor.rot_rad[use]))
+        mt, mr = float(np.mean(errors.trans_m[use])), float(np.mean(errors.rot_rad[use]))
+        row["floor_trans_mm"], row["floor_rot_deg"] = 1e3 * ft, math.degrees(fr)
+        row["trans_floor_multiple"] = mt / ft if ft > 0 else float("inf")
+        row["rot_floor_multiple"] = mr / fr if fr > 0 else float("inf")
+    else:
+        for k in ("floor_trans_mm", "floor_rot_deg", "trans_floor_multiple", "rot_floor_multiple"):
+            row[k] = float("nan")
+    by_t = breakdown_by_label(1e3 * errors.trans_m, occlusion, mask=has_gt)
+    by_r = breakdown_by_label(np.degrees(errors.rot_rad), occlusion, mask=has_gt)
+    for lab in ("none", "partial", "heavy"):
+        row[f"trans_mm_{lab}"] = by_t.get(lab, float("nan"))
+        row[f"rot_deg_{lab}"] = by_r.get(lab, float("nan"))
+    lat = res.latency_ms[np.isfinite(res.latency_ms)]
+    row["latency_median_ms"] = float(np.median(lat)) if lat.size else float("nan")
+    row["latency_p95_ms"] = float(np.percentile(lat, 95)) if lat.size else float("nan")
+    return ResultEvaluation(
+        result=res, recording=recording, method=res.method, variant=variant, label=label, T_gt=T_gt,
+        has_gt=has_gt, errors=errors, bimodal=bimodal, assessed=assessed, ashman_d=ashman, labels=labels,
+        floor_errors=floor, occlusion=occlusion, row=row,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# tables
+
+
+def _f(x: float, digits: int = 2) -> str:
+    if x is None or not np.isfinite(x):
+        return "–"
+    return f"{x:.{digits}f}" if abs(x) < 1e5 else f"{x:.2g}"
+
+
+def _pm(mean: float, std: float, digits: int = 2) -> str:
+    if not np.isfinite(mean):
+        return "–"
+    return f"{mean:.{digits}f}±{std:.{digits}f}"
+
+
+def _pct(x: float) -> str:
+    return "–" if x is None or not np.isfinite(x) else f"{100.0 * x:.0f}%"
+
+
+def _md_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def table_ii(evals: Sequence[ResultEvaluation]) -> str:
+    """Markdown table shaped like the paper's Table II (X/Y/Z/Total mean±std, Unc p95, NLL-S, IS, ×floor)."""
+    rows = []
+    for ev in evals:
+        r = ev.row
+        rows.append([
+            ev.label, r["recording"], "Trans (mm)",
+            *(_pm(r[f"trans_{a}_mean_mm"], r[f"trans_{a}_std_mm"]) for a in "xyz"),
+            _pm(r["trans_mean_mm"], r["trans_std_mm"]), _f(r["trans_q95_mm"]), _f(r["nlls_trans"]),
+            _f(r["is_trans"]), _f(r["trans_floor_multiple"], 1),
+        ])
+        rows.append([
+            "", "", "Rot (deg)",
+            *(_pm(r[f"rot_{a}_mean_deg"], r[f"rot_{a}_std_deg"]) for a in "xyz"),
+            _pm(r["rot_mean_deg"], r["rot_std_deg"]), _f(r["rot_q95_deg"]), _f(r["nlls_rot"]),
+            _f(r["is_rot"]), _f(r["rot_floor_multiple"], 1),
+        ])
+    header = ("Method", "Recording", "Metric", "X", "Y", "Z", "Total", "Unc (p95)", "NLL-S", "IS", "× floor")
+    return _md_table(header, rows)
+
+
+def table_multimodal(evals: Sequence[ResultEvaluation]) -> str:
+    """Markdown table of the bimodality numbers, raw and judged against the ΔNLL labels."""
+    rows = [[
+        ev.label, ev.row["recording"], _pct(ev.row["bimodal_share"]), _pct(ev.row["truth_in_dominant_share"]),
+        str(ev.row["ambiguous_frames"]), _pct(ev.row["bimodal_ambiguous_rate"]), str(ev.row["clear_frames"]),
+        _pct(ev.row["bimodal_clear_rate"]),
+    ] for ev in evals]
+    header = ("Method", "Recording", "Bimodal (all frames)", "Truth in dominant mode", "Ambiguous frames",
+              "Bimodal on ambiguous (sensitivity)", "Clear frames", "Bimodal on clear (false)")
+    return _md_table(header, rows)
+
+
+def _ablation_groups(evals: Sequence[ResultEvaluation]) -> dict[str, list[ResultEvaluation]]:
+    """Recording name -> its SVN/SVGD results in Table III order (only recordings with an ablation)."""
+    order = {v[0]: i for i, v in enumerate(ABLATION_VARIANTS)}
+    groups: dict[str, list[ResultEvaluation]] = {}
+    for ev in evals:
+        if ev.method in ("svn", "svgd"):
+            groups.setdefault(ev.recording.info.name, []).append(ev)
+    out = {}
+    for name, evs in groups.items():
+        if any(ev.variant != "full" for ev in evs):
+            out[name] = sorted(evs, key=lambda e: (order.get(e.variant, len(order)), e.label))
+    return out
+
+
+def table_iii(evals: Sequence[ResultEvaluation]) -> str:
+    """Markdown tables shaped like the paper's Table III, one per recording with ablations ('' if none)."""
+    parts = []
+    for rec_name, evs in _ablation_groups(evals).items():
+        rows = [[
+            _variant_title(ev.variant),
+            _pm(ev.row["trans_mean_mm"], ev.row["trans_std_mm"]), _f(ev.row["trans_q95_mm"]),
+            _f(ev.row["nlls_trans"]), _f(ev.row["is_trans"]),
+            _pm(ev.row["rot_mean_deg"], ev.row["rot_std_deg"]), _f(ev.row["rot_q95_deg"]),
+            _f(ev.row["nlls_rot"]), _f(ev.row["is_rot"]), _f(ev.row["trans_floor_multiple"], 1),
+        ] for ev in evs]
+        header = ("Ablation", "Trans mean±std (mm)", "Unc", "NLL-S", "IS", "Rot mean±std (deg)", "Unc",
+                  "NLL-S", "IS", "× floor (trans)")
+        parts.append(f"### {rec_name}\n\n" + _md_table(header, rows))
+    return "\n\n".join(parts)
+
+
+def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
+    """The printable comparison: accuracy, uncertainty, floor and bimodality per result (fixed-width)."""
+    header = ("recording", "method", "frames", "trans mm", "rot deg", "q95 mm/deg", "NLL-S t/r", "IS t/r",
+              "x floor t/r", "bimodal", "on ambig.", "on clear", "truth dom.", "ms/frame")
+    rows = []
+    for ev in evals:
+        r = ev.row
+        rows.append((
+            r["recording"], ev.label, str(r["frames"]), _pm(r["trans_mean_mm"], r["trans_std_mm"]),
+            _pm(r["rot_mean_deg"], r["rot_std_deg"], 1), f"{_f(r['trans_q95_mm'])}/{_f(r['rot_q95_deg'], 1)}",
+            f"{_f(r['nlls_trans'])}/{_f(r['nlls_rot'])}", f"{_f(r['is_trans'])}/{_f(r['is_rot'], 1)}",
+            f"{_f(r['trans_floor_multiple'], 1)}/{_f(r['rot_floor_multiple'], 1)}", _pct(r["bimodal_share"]),
+            _pct(r["bimodal_ambiguous_rate"]), _pct(r["bimodal_clear_rate"]),
+            _pct(r["truth_in_dominant_share"]), _f(r["latency_median_ms"], 1),
+        ))
+    widths = [max(len(h), *(len(x[i]) for x in rows)) if rows else len(h) for i, h in enumerate(header)]
+
+    def line(cells: Sequence[str]) -> str:
+        return "  ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)).rstrip()
+
+    lines = [line(header), "-" * len(line(header)), *(line(x) for x in rows)]
+    floors = {}
+    for ev in evals:
+        key = (ev.row["recording"], ev.variant if ev.method in ("svn", "svgd") else "full")
+        if np.isfinite(ev.row["floor_trans_mm"]):
+            floors.setdefault(key, (ev.row["floor_trans_mm"], ev.row["floor_rot_deg"]))
+    if floors:
+        lines.append("")
+        lines.append("accuracy floor (per-frame MAP solved from the truth): " + "; ".join(
+            f"{rec}{'' if var == 'full' else ' ' + var}: {t:.2f} mm / {r:.1f} deg"
+            for (rec, var), (t, r) in floors.items()
+        ))
+    lines.append("bimodal = raw share; on ambig./on clear = bimodal rate on frames whose second circle pose "
+                 "is within 2.3 nats / beyond 10 nats of the truth's (ΔNLL)")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# figures
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "result"
+
+
+def _cloud_figure(evals: Sequence[ResultEvaluation], out: Path) -> list[Path]:
+    paths = []
+    by_rec: dict[str, list[ResultEvaluation]] = {}
+    for ev in evals:
+        P = ev.result.particles
+        if P is not None and P.cam_T_needle.shape[1] >= 6:
+            by_rec.setdefault(ev.recording.info.name, []).append(ev)
+    for rec_name, evs in by_rec.items():
+        # a frame every set has, ambiguous if possible, where most sets are bimodal and separation is largest
+        common = set.intersection(*(set(ev.result.frame[ev.assessed & ev.has_gt].tolist()) for ev in evs))
+        if not common:
+            continue
+        best, best_key = None, None
+        for f in common:
+            amb = sum(ev.labels[ev.result.frame == f][0] == "ambiguous" for ev in evs) > 0
+            n_bi = sum(bool(ev.bimodal[ev.result.frame == f][0]) for ev in evs)
+            d = max(np.nan_to_num(ev.ashman_d[ev.result.frame == f][0]) for ev in evs)
+            key = (amb, n_bi, d)
+            if best_key is None or key > best_key:
+                best, best_key = f, key
+        panels = []
+        for ev in evs:
+            i = int(np.nonzero(ev.result.frame == best)[0][0])
+            P = ev.result.particles
+            w = None if P.weight is None else P.weight[i]
+            T_map = ev.result.cam_T_needle[i]
+            v = assess_bimodality(P.cam_T_needle[i], T_map, weights=w, T_gt=ev.T_gt[i])
+            X = tangent_at_map(T_map, P.cam_T_needle[i])
+            if w is not None or X.shape[0] > 1000:
+                X = X[systematic_resample(np.ones(X.shape[0]) if w is None else w, min(X.shape[0], 1000),
+                                          np.random.default_rng(0))]
+            panels.append(plots.CloudPanel(label=ev.label, scaled_xi=X, verdict=v))
+        label = "ambiguous" if best_key[0] else "no ambiguous frame; most separated"
+        title = f"{rec_name}, frame {best} ({label})"
+        paths.append(plots.particle_cloud(panels, title, out / f"particle_cloud_{_slug(rec_name)}.png"))
+    return paths
+
+
+def _figures(evals: Sequence[ResultEvaluation], out: Path) -> list[Path]:
+    paths: list[Path] = []
+    groups: dict[str, list[plots.MethodErrors]] = {}
+    for ev in evals:
+        g = ev.has_gt & np.isfinite(ev.errors.trans_m)
+        groups.setdefault(ev.recording.info.name, []).append(plots.MethodErrors(
+            label=ev.label, trans_mm=1e3 * ev.errors.trans_m[g], rot_deg=np.degrees(ev.errors.rot_rad[g]),
+            trans_axes_mm=1e3 * ev.errors.trans_axes_m[g], rot_axes_deg=np.degrees(ev.errors.rot_axes_rad[g]),
+        ))
+    paths.append(plots.error_distributions(list(groups.items()), out / "errors.png"))
+    for ev in evals:
+        res = ev.result
+        paths.append(plots.error_over_time(
+            res.t_s, 1e3 * ev.errors.trans_m, np.degrees(ev.errors.rot_rad), 1e3 * res.q95_trans_m,
+            np.degrees(res.q95_rot_rad), ev.occlusion, f"{ev.label} on {ev.recording.info.name}",
+            out / f"error_time_{_slug(ev.recording.info.name)}_{_slug(ev.label)}.png", bimodal=ev.bimodal,
+            floor_trans_mm=1e3 * ev.floor_errors.trans_m, floor_rot_deg=np.degrees(ev.floor_errors.rot_rad),
+        ))
+    paths += _cloud_figure(evals, out)
+    for rec_name, evs in _ablation_groups(evals).items():
+        names = [_variant_title(ev.variant) for ev in evs]
+        ref = next((i for i, ev in enumerate(evs) if ev.variant == "full"), None)
+        paths.append(plots.ablation_bars(
+            names, [ev.row["trans_mean_mm"] for ev in evs], [ev.row["rot_mean_deg"] for ev in evs],
+            f"Ablations on {rec_name}", out / f"ablation_{_slug(rec_name)}.png", reference=ref,
+        ))
+    return paths
+
+
+# --------------------------------------------------------------------------------------------
+# entry points
+
+
+@dataclass
+class EvaluationReport:
+    """What :func:`evaluate_results` computed and wrote."""
+
+    evaluations: list[ResultEvaluation]
+    """One per result, in the order given."""
+    text: str
+    """The printable comparison (:func:`comparison_text`)."""
+    table_ii: str
+    """Markdown Table II."""
+    table_iii: str
+    """Markdown Table III ('' without ablation results)."""
+    files: list[Path]
+    """Every file written (summary.csv, tables.md, figures)."""
+
+
+def _write_summary(evals: Sequence[ResultEvaluation], path: Path) -> Path:
+    extra = sorted({k for ev in evals for k in ev.row} - set(SUMMARY_COLUMNS))
+    cols = [*SUMMARY_COLUMNS, *extra]
+    with open(path, "w", encoding="utf-8", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(cols)
+        for ev in evals:
+            cells = []
+            for c in cols:
+                v = ev.row.get(c, "")
+                cells.append(repr(float(v)) if isinstance(v, float) else str(v))
+            w.writerow(cells)
+    return path
+
+
+def evaluate_results(
+    results: Sequence[Path | str],
+    recording: Path | str | None = None,
+    out: Path | str = Path("evaluation"),
+    *,
+    ambiguity: bool = True,
+    figures: bool = True,
+    config: AmbiguityConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> EvaluationReport:
+    """Evaluate result directories (module docstring); returns everything computed.
+
+    ``ambiguity=False`` skips the ΔNLL labels (sensitivity / false-bimodal rates become NaN) but
+    still computes the accuracy floor. ``progress(message)`` is called at each stage when given.
+    """
+    if not results:
+        raise InputError("no results to evaluate")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda _msg: None)
+    given = read_recording(recording) if recording is not None else None
+    cache: dict[Path, Recording] = {}
+    loaded: list[tuple[Result, Recording, MeasurementModel, tuple]] = []
+    for p in results:
+        res = read_result(p)
+        rec = _recording_for(res, given, cache)
+        noise, noise_key = _noise_of(res)
+        disabled = _disabled_of(res)
+        sw = Switches.from_disabled(disabled)
+        model = MeasurementModel(rec.info.camera, rec.info.needle, noise, sw)
+        key = (str(rec.root.resolve()), noise_key, tuple(d for d in disabled if d != "motion"))
+        loaded.append((res, rec, model, key))
+
+    # ΔNLL labels and floor: once per (recording, likelihood), on the union of the frames needed
+    needed: dict[tuple, set[int]] = {}
+    for res, _, _, key in loaded:
+        needed.setdefault(key, set()).update(int(f) for f in res.frame)
+    analyses: dict[tuple, RecordingAmbiguity] = {}
+    for _, rec, model, key in loaded:
+        if key not in analyses:
+            say(f"ambiguity and floor: {rec.info.name} ({len(needed[key])} frames)")
+            analyses[key] = analyse_recording(
+                rec, model, config or AmbiguityConfig(), alternatives=ambiguity, frames=needed[key]
+            )
+
+    names: dict[str, int] = {}
+    evals = []
+    for res, rec, _, key in loaded:
+        disabled = _disabled_of(res)
+        variant = variant_name(res.method, disabled)
+        label = res.method if variant in ("full", "svgd") else f"{res.method} {variant}"
+        window = _settings_of(res).get("window")
+        if isinstance(window, int) and window > 1:
+            label += f" L={window}"
+        tag = (rec.info.name, label)
+        names[str(tag)] = names.get(str(tag), 0) + 1
+        if names[str(tag)] > 1:
+            label += f" #{names[str(tag)]}"
+        say(f"metrics: {label} on {rec.info.name}")
+        evals.append(_evaluate_one(res, rec, analyses[key], variant, label))
+
+    files = [_write_summary(evals, out / "summary.csv")]
+    t2, t3, tm = table_ii(evals), table_iii(evals), table_multimodal(evals)
+    md = ["# Evaluation", "", "## Tracking comparison (Table II)", "", t2, "", "## Multimodality", "", tm]
+    if t3:
+        md += ["", "## Ablations (Table III)", "", t3]
+    (out / "tables.md").write_text("\n".join(md) + "\n", encoding="utf-8")
+    files.append(out / "tables.md")
+    if figures:
+        say("figures")
+        files += _figures(evals, out)
+    text = comparison_text(evals)
+    return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)
+
+
+def evaluate(results: list[Path], recording: Path | None = None, out: Path = Path("evaluation")) -> str:
+    """Evaluate results, write summary.csv, tables.md and figures to ``out``; return the printable summary."""
+    return evaluate_results(results, recording, out).text

@@ -1,0 +1,140 @@
+"""Noise calibration: residuals at the truth, recovery of the simulator's noise, the noise file, Table I."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from factors.geometry import PinholeCamera
+from factors.lie import se3_inverse, se3_log
+from pinpoint_fg.cli import main
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.eval.calibrate import calibrate_runs, format_table, residuals_at_truth
+from pinpoint_fg.io.recording import RecordingWriter, read_recording, replace_ground_truth
+from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.sim.config import SimConfig
+from pinpoint_fg.sim.kinematics import needle_T_grasper
+from pinpoint_fg.sim.scenarios import SimRun, simulate, simulate_frames
+
+N_FRAMES = 500
+#: An undistorted camera, so keypoint noise added in the image is exactly the residual's noise.
+PINHOLE = PinholeCamera(fx=900.0, fy=900.0, cx=539.5, cy=539.5, width=1080, height=1080)
+#: White kinematic noise: every frame an independent sample (the default bias would need hours of data).
+WHITE = SimConfig(camera=PINHOLE, kin_white_var_fraction=1.0)
+
+
+def _write(run: SimRun, out: Path) -> Path:
+    """Write an in-memory simulated run exactly as ``simulate`` does."""
+    with RecordingWriter(out, run.info) as writer:
+        for rec in run.frames:
+            writer.add(rec, mask=run.masks.get(rec.frame))
+    return out
+
+
+@pytest.fixture(scope="module")
+def calib(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimRun, Path]:
+    run = simulate_frames("calibration", N_FRAMES, seed=5, config=WHITE)
+    return run, _write(run, tmp_path_factory.mktemp("calib") / "run")
+
+
+def _within_sampling_error(estimate: np.ndarray, sigma: np.ndarray, n: int, k: float = 4.0) -> None:
+    """Sample std within k standard errors (sigma / sqrt(2 (n - 1))) of the configured sigma."""
+    se = np.asarray(sigma) / math.sqrt(2.0 * (n - 1))
+    assert np.all(np.abs(np.asarray(estimate) - sigma) < k * se), (estimate, sigma, k * se)
+
+
+def test_residuals_at_truth_are_exactly_the_simulated_errors(calib: tuple[SimRun, Path]) -> None:
+    run, path = calib
+    r = residuals_at_truth(read_recording(path))
+    # grasp position: recorded = true + e, so T_gt X_g - p_rec = -e
+    np.testing.assert_allclose(r["grasp_position"], -run.kinematic_errors.position_m, atol=1e-15)
+    # perpendicularity: z_rec . t_g = sin(beta) exactly
+    np.testing.assert_allclose(r["grasp_perpendicular"][:, 0], np.sin(run.kinematic_errors.angles_rad[:, 1]),
+                               atol=1e-12)
+    # keypoints (no distortion): pi(T X) - z = true pixel - measured pixel
+    seen = [k for k, f in enumerate(run.frames) if f.tip_px is not None]
+    expect = np.array([run.tip_px_true[k] - run.frames[k].tip_px for k in seen])
+    np.testing.assert_allclose(r["tip"], expect, atol=1e-9)
+    # motion: with N_k = G_k^-1 G_rec_k (grasper-frame error), E = nTg N_{k-1} N_k^-1 gTn
+    G, Grec = run.cam_T_grasper, run.cam_T_grasper_recorded
+    N = se3_inverse(G) @ Grec
+    nTg = needle_T_grasper(run.config.needle, run.config.grasper_tilt_rad)
+    E = nTg[None] @ N[:-1] @ se3_inverse(N[1:]) @ se3_inverse(nTg)[None]
+    np.testing.assert_allclose(r["motion"], se3_log(E), atol=1e-10)
+    # conic: one sample per extracted backbone pixel, every mask frame
+    assert r["conic"].shape[1] == 1 and r["conic"].shape[0] > 50 * len(run.masks)
+
+
+def test_calibration_recovers_the_configured_noise(calib: tuple[SimRun, Path]) -> None:
+    run, path = calib
+    noise = calibrate_runs([path])
+    cfg = run.config
+    n_gp = noise["grasp_position"].count
+    assert n_gp == N_FRAMES
+    _within_sampling_error(noise["grasp_position"].sigma, np.array(cfg.grasp_position_sigma_m), n_gp)
+    _within_sampling_error(noise["grasp_perpendicular"].sigma, np.array([cfg.perpendicular_sigma]), n_gp)
+    for name, sigma in (("tip", cfg.tip_sigma_px), ("tail", cfg.tail_sigma_px)):
+        nz = noise[name]
+        assert nz.count == sum(getattr(f, f"{name}_px") is not None for f in run.frames)
+        _within_sampling_error(nz.sigma, np.array(sigma), nz.count)
+        assert np.all(np.abs(nz.mean) < 4.0 * np.array(sigma) / math.sqrt(nz.count))
+    assert noise["motion"].count == N_FRAMES - 1
+    # the mask band's centre line moves by delta_c + (delta_l + delta_r) / 2 (render.py)
+    band = math.sqrt(cfg.mask_centreline_sigma_px**2 + cfg.mask_edge_sigma_px**2 / 2.0)
+    assert abs(noise["conic"].sigma[0] / band - 1.0) < 0.10
+    assert abs(noise["conic"].mean[0]) < 0.2
+
+
+def test_exact_kinematics_give_a_vanishing_motion_residual(tmp_path: Path) -> None:
+    cfg = SimConfig(camera=PINHOLE, grasp_position_sigma_m=(1e-9, 1e-9, 1e-9), perpendicular_sigma=0.0,
+                    grasper_rot_sigma_rad=0.0, mask_every=1000)
+    path = simulate("calibration", 40, seed=2, out=tmp_path / "run", config=cfg)
+    noise = calibrate_runs([path])
+    assert noise["motion"].count == 39
+    assert np.all(noise["motion"].sigma[:3] < 1e-8) and np.all(noise["motion"].sigma[3:] < 1e-9)
+    assert noise["grasp_perpendicular"].sigma[0] < 1e-6  # floored, still positive definite
+
+
+def test_noise_file_round_trips(calib: tuple[SimRun, Path], tmp_path: Path) -> None:
+    noise = calibrate_runs([calib[1]])
+    noise.save(tmp_path / "noise.json")
+    back = NoiseConfig.load(tmp_path / "noise.json")
+    for k, v in noise.residuals.items():
+        np.testing.assert_array_equal(back[k].mean, v.mean)
+        np.testing.assert_array_equal(back[k].cov, v.cov)
+        assert back[k].count == v.count
+
+
+def test_cli_calibrate_writes_a_loadable_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    path = simulate("calibration", 20, seed=1, out=tmp_path / "run", config=WHITE)
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "n.json")]) == 0
+    out = capsys.readouterr().out
+    assert "Anchor (x, y, z)" in out and "wrote" in out
+    assert NoiseConfig.load(tmp_path / "n.json")["tip"].count > 0
+
+
+def test_run_without_ground_truth_is_an_input_error_naming_it(tmp_path: Path) -> None:
+    path = simulate("calibration", 6, seed=1, out=tmp_path / "nogt", config=WHITE)
+    replace_ground_truth(path, {k: None for k in range(6)})
+    with pytest.raises(InputError) as exc:
+        calibrate_runs([path])
+    assert "nogt" in str(exc.value) and "ground truth" in str(exc.value)
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "n.json")]) == 2
+
+
+def test_format_table_is_shaped_like_table_i() -> None:
+    text = format_table(NoiseConfig())
+    lines = text.splitlines()
+    assert lines[0].split()[:2] == ["Likelihood", "type"]
+    rows = {ln.split("  ")[0].strip(): ln for ln in lines[2:]}
+    assert set(rows) == {
+        "Anchor (x, y, z)", "Perpendicular", "Conic", "Keypoints (tip u, v; tail u, v)",
+        "Motion rotation (x, y, z) per frame", "Motion translation (x, y, z) per frame",
+    }
+    assert "(0.41, 0.44, 1.00) mm" in rows["Anchor (x, y, z)"]
+    assert "1.235 px" in rows["Conic"]
+    assert "(1.006, 1.012; 0.921, 0.680) px" in rows["Keypoints (tip u, v; tail u, v)"]
+    assert all(ln.rstrip().endswith("default") for ln in lines[2:])

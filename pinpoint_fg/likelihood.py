@@ -144,7 +144,8 @@ class FrameLikelihood:
 
     @staticmethod
     def _term_dim(name: str, data: object) -> int:
-        return len(data) if name == "conic" else {"tip": 2, "tail": 2, "grasp_position": 3, "grasp_perpendicular": 1}[name]
+        dims = {"tip": 2, "tail": 2, "grasp_position": 3, "grasp_perpendicular": 1}
+        return len(data) if name == "conic" else dims[name]
 
     @property
     def term_names(self) -> tuple[str, ...]:
@@ -190,7 +191,7 @@ class FrameLikelihood:
         return np.concatenate(es, axis=1), (np.concatenate(Js, axis=1) if jacobian else None)
 
     def cheirality(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Penalty ``1/2 s^2`` with ``s = max(0, z_min - z) / 1 mm``: value (N,), gradient (N, 6), GN Hessian (N, 6, 6)."""
+        """Penalty ``1/2 s^2``, ``s = max(0, z_min - z) / 1 mm``: value (N,), gradient (N, 6), Hessian (N, 6, 6)."""
         T = res.as_pose_batch(cam_T_needle)
         s = np.maximum(0.0, self.model.min_depth_m - T[:, 2, 3]) / 1e-3
         # dz/dxi = [0, R_row2] (translation moves along R v)

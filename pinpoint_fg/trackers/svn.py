@@ -33,8 +33,8 @@ Per frame (DESIGN.md §Inference):
    the same for every particle of one mode however far repulsion has spread them; a particle
    is pruned when that exceeds the best by ``prune_nll`` (relative density e^-30). Genuinely
    ambiguous modes (a few nats apart) are untouched.
-6. **Report** — MAP particle (lowest total cost: evidence + window), q95 spread and covariance around it; with L > 1 the smoothed
-   pose of frame k - L + 1. When every hypothesis is implausible (the best one's cost far above
+6. **Report** — MAP particle (lowest total cost: evidence + window), q95 spread and covariance
+   around it; with L > 1 the smoothed pose of frame k - L + 1. When every hypothesis is implausible (the best one's cost far above
    what the frame's residual count allows) the particles are re-seeded from this frame.
 
 SVGD (ablation baseline) is the same loop with ``H = I``, ``S = I`` and a fixed step size.
@@ -161,8 +161,8 @@ class SvnTracker(Tracker):
         quiet = 0
         best_prev = None
         value = None
-        it = 0
-        for it in range(1, max_iters + 1):
+        iterations = 0
+        for iterations in range(1, max_iters + 1):  # noqa: B007 - the count is returned
             lin = self.window.linearize()
             value = lin.value
             ref = int(np.argmin(value + self.window.evidence))
@@ -205,7 +205,7 @@ class SvnTracker(Tracker):
         gw = lin.grad * S
         drop = 0.5 * np.einsum("ni,nij,nj->n", gw, Hinv, gw)
         self._mode_value = final - np.clip(drop, 0.0, np.maximum(lin.value, 0.0))
-        return it, final
+        return iterations, final
 
     def _prune(self, total: np.ndarray) -> int:
         """Replace hypotheses ruled out by the evidence (``total`` cost (N,)) with copies of survivors."""

@@ -14,14 +14,15 @@ needle's plane and centre but not where the arc lies on the circle, so:
    every candidate with the frame's :class:`~pinpoint_fg.likelihood.FrameLikelihood` — the same
    terms, switches and noise the tracker used;
 2. polish the ``candidates`` best grid poses, and ``T_gt`` itself, by batched Levenberg-Marquardt
-   on all six degrees of freedom (:func:`polish_to_convergence`: Gauss-Newton information with
-   eigenvalues floored at 1e-6 of the largest, a step is kept only if it lowers the NLL, until the
-   Gauss-Newton decrement ``1/2 g^T H^-1 g`` of every pose is below ``decrement_tol`` nats);
+   on all six degrees of freedom (:func:`polish_to_convergence`: a step is kept only if it lowers
+   the NLL, until the Gauss-Newton decrement ``1/2 g^T H^-1 g`` of every pose is below
+   ``decrement_tol`` nats);
 3. keep a polished alternative only if it stayed in its mode: its plane normal must remain
    closer (as a line, ``arccos |n . n'|``) to the alternative's than to the truth's. If every
    polished candidate drifted back to the truth, the best *unpolished* grid pose is used (its
-   ΔNLL is then an upper bound). Likewise the polished truth falls back to ``T_gt`` if it
-   drifted to the alternative;
+   ΔNLL is then an upper bound). Likewise, if the solve started at ``T_gt`` ends nearer the
+   alternative's plane (a frame that does not pin the pose down, e.g. one keypoint and the grasp
+   terms), the truth side of ΔNLL is ``nll(T_gt)`` instead;
 4. ``ΔNLL = nll(alternative mode) - nll(truth mode)``.
 
 Decision (refines the wording "nll(alternative) - nll(truth)"): both sides are *mode minima*.
@@ -39,9 +40,11 @@ frame is genuinely ambiguous — and ``ΔNLL > 10`` (:data:`CLEAR_ABOVE`) means 
 same factors and noise, a single frame, no motion model and no prior (a per-frame estimator's
 best case started at the right mode). Its error against ``T_gt`` is the error no per-frame
 estimator beats on average; a tracker's mean error divided by the floor's says how close it
-gets (:func:`pinpoint_fg.eval.metrics.accuracy_multiple`). In a frame whose terms leave some
-directions unobserved (no image evidence: only the grasp terms) the solve does not move along
-them, so there the floor is optimistic (it inherits the truth).
+gets (:func:`pinpoint_fg.eval.metrics.accuracy_multiple`). The floor pose is wherever that solve
+converges, even when it leaves the truth's basin (a frame with too few terms to fix all six
+degrees of freedom can slide far): that is what a per-frame estimator would get. Directions
+with no information at all (e.g. no image evidence) do not move, so there the floor is
+optimistic (it inherits the truth).
 """
 
 from __future__ import annotations
@@ -91,7 +94,7 @@ class FrameAmbiguity:
     delta_nll: float
     """``nll(alternative mode) - nll(truth mode)``; +inf without a distinct alternative, NaN if unknown."""
     nll_truth: float
-    """NLL of the truth mode (the polished truth)."""
+    """NLL of the truth mode: the polished truth, or ``nll(T_gt)`` if that solve crossed planes."""
     nll_alternative: float
     """NLL of the alternative mode (NaN / inf when there is none)."""
     cam_T_truth_mode: np.ndarray
@@ -100,6 +103,8 @@ class FrameAmbiguity:
     """(4, 4) the alternative mode's pose, None when there is none."""
     normal_separation_deg: float
     """Angle between the truth's plane and the alternative plane, degrees (NaN when unknown)."""
+    truth_solve_crossed: bool = False
+    """The solve from the truth ended nearer the alternative's plane than the truth's."""
 
 
 def image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float) -> np.ndarray:
@@ -162,31 +167,45 @@ def _in_plane_poses(centre: np.ndarray, normal: np.ndarray, steps: int) -> np.nd
     return np.concatenate(out, axis=0)
 
 
+def _jacobi_scaled(g: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Unit-free form of gradients (N, 6) and information (N, 6, 6): ``d = sqrt(diag H)``,
+    ``g_s = g / d``, ``H_s = H / (d d^T)`` with eigenvalues floored at 1e-9 of the largest.
+
+    Returns ``g_s``, floored ``H_s``, its inverse and ``d`` (N, 6). A direction without
+    information (``diag H = 0``) gets a tiny ``d`` and zero gradient, so it does not move.
+    """
+    diag = np.einsum("nii->ni", H)
+    d = np.sqrt(np.maximum(diag, 1e-18 * np.max(diag, axis=1, keepdims=True) + 1e-300))
+    Hs = H / (d[:, :, None] * d[:, None, :])
+    Hs_f, Hs_inv = floor_hessians(Hs, eps=1e-9)
+    return g / d, Hs_f, Hs_inv, d
+
+
 def polish_to_convergence(
     lik: FrameLikelihood, cam_T_needle: np.ndarray, max_iters: int = 60, decrement_tol: float = 1e-2
 ) -> tuple[np.ndarray, np.ndarray]:
     """Batched Levenberg-Marquardt on poses (N, 4, 4) -> polished poses (N, 4, 4) and their NLL (N,).
 
-    Per pose: ``H~`` = the Gauss-Newton information with eigenvalues floored at ``1e-6 w_max``
-    (:func:`pinpoint_fg.stein.floor_hessians`), step ``-(H~ + lam diag H~)^-1 g`` in the right
-    chart, kept only if the NLL decreases (then ``lam /= 3``, else ``lam *= 10``; ``lam`` starts at
-    1e-3). A pose stops once its decrement ``1/2 g^T H~^-1 g`` is below ``decrement_tol`` (only the
-    others are iterated on); all stop after ``max_iters``. Directions the frame does not observe
-    get no information and do not move.
+    Per pose, in Jacobi-scaled (unit-free) coordinates ``d = sqrt(diag H)`` so that rotation
+    (rad) and translation (m) are comparable: ``H_s = H / (d d^T)`` with eigenvalues floored at
+    1e-9 of the largest (:func:`pinpoint_fg.stein.floor_hessians`), the Marquardt step
+    ``-(H_s + lam I)^-1 (g / d) / d`` in the right chart, kept only if the NLL decreases (then
+    ``lam /= 3``, else ``lam *= 10``; ``lam`` starts at 1e-3). A pose stops once its Gauss-Newton
+    decrement ``1/2 g^T H^-1 g`` is below ``decrement_tol`` (only the others are iterated on); all
+    stop after ``max_iters``. Directions the frame does not observe get no information and do not
+    move.
     """
     T = np.array(cam_T_needle, dtype=float)
     lam = np.full(T.shape[0], 1e-3)
     nll, g, H = lik.gauss_newton(T)
     eye = np.eye(6)
     for _ in range(int(max_iters)):
-        Hf, Hinv = floor_hessians(H, eps=1e-6)
-        active = np.nonzero(0.5 * np.einsum("ni,nij,nj->n", g, Hinv, g) >= decrement_tol)[0]
+        gs, Hs_f, Hs_inv, d = _jacobi_scaled(g, H)
+        active = np.nonzero(0.5 * np.einsum("ni,nij,nj->n", gs, Hs_inv, gs) >= decrement_tol)[0]
         if active.size == 0:
             break
-        Ha = Hf[active]
-        diag = np.einsum("nii->ni", Ha)
-        A = Ha + lam[active, None, None] * diag[:, :, None] * eye
-        step = -np.linalg.solve(A, g[active][..., None])[..., 0]
+        A = Hs_f[active] + lam[active, None, None] * eye
+        step = -np.linalg.solve(A, gs[active][..., None])[..., 0] / d[active]
         Tn = T[active] @ se3_exp(step)
         nll_n, g_n, H_n = lik.gauss_newton(Tn)
         better = nll_n < nll[active]
@@ -207,11 +226,11 @@ def analyse_frame(
     K = lik.model.camera.K
     r = lik.model.needle.radius_m
     n_gt = T_gt[:3, 2]
-    alt = alternative_circle(T_gt, K, r) if alternatives else None
+    alt = alternative_circle(T_gt, K, r)  # closed form; also needed for the truth polish's drift check
 
     grid = np.zeros((0, 4, 4))
     grid_nll = np.zeros(0)
-    if alt is not None and alt[2] >= config.min_mode_separation_deg:
+    if alternatives and alt is not None and alt[2] >= config.min_mode_separation_deg:
         grid = _in_plane_poses(alt[0], alt[1], config.angle_steps)
         grid_nll = lik.nll(grid)
         order = np.argsort(grid_nll)[: max(int(config.candidates), 1)]
@@ -220,20 +239,26 @@ def analyse_frame(
         start = T_gt[None]
     polished, nll = polish_to_convergence(lik, start, config.polish_iters, config.decrement_tol)
 
-    # truth mode: fall back to T_gt if the polish crossed to the alternative plane
+    # the floor is wherever the solve from the truth went; the truth *mode's* NLL falls back to
+    # nll(T_gt) when that solve left the truth's plane for one nearer the alternative's
     T_truth, nll_truth = polished[0], float(nll[0])
-    if alt is not None and _line_angle_deg(T_truth[:3, 2], alt[1]) < _line_angle_deg(T_truth[:3, 2], n_gt):
-        T_truth, nll_truth = T_gt, float(lik.nll(T_gt)[0])
+    crossed = alt is not None and bool(
+        _line_angle_deg(T_truth[:3, 2], alt[1]) < _line_angle_deg(T_truth[:3, 2], n_gt)
+    )
+    if crossed:
+        nll_truth = float(lik.nll(T_gt)[0])
 
-    if alt is None:
+    if not alternatives or alt is None:
         return FrameAmbiguity(
             delta_nll=float("nan"), nll_truth=nll_truth, nll_alternative=float("nan"),
-            cam_T_truth_mode=T_truth, cam_T_alternative=None, normal_separation_deg=float("nan"),
+            cam_T_truth_mode=T_truth, cam_T_alternative=None,
+            normal_separation_deg=float("nan") if alt is None else alt[2], truth_solve_crossed=crossed,
         )
     if grid.shape[0] == 0:
         return FrameAmbiguity(
             delta_nll=float("inf"), nll_truth=nll_truth, nll_alternative=float("inf"),
             cam_T_truth_mode=T_truth, cam_T_alternative=None, normal_separation_deg=alt[2],
+            truth_solve_crossed=crossed,
         )
     P, pn = polished[1:], nll[1:]
     stayed = _line_angle_deg(P[:, :3, 2], alt[1][None]) < _line_angle_deg(P[:, :3, 2], n_gt[None])
@@ -245,7 +270,7 @@ def analyse_frame(
         T_alt, nll_alt = grid[j], float(grid_nll[j])
     return FrameAmbiguity(
         delta_nll=nll_alt - nll_truth, nll_truth=nll_truth, nll_alternative=nll_alt, cam_T_truth_mode=T_truth,
-        cam_T_alternative=T_alt, normal_separation_deg=alt[2],
+        cam_T_alternative=T_alt, normal_separation_deg=alt[2], truth_solve_crossed=crossed,
     )
 
 

@@ -106,9 +106,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_benchmark(args: argparse.Namespace) -> int:
-    from pinpoint_fg.benchmark import run_benchmark
+    from pinpoint_fg.demo import run_benchmark
 
-    run_benchmark(out=args.out, frames=args.frames, seed=args.seed)
+    run_benchmark(out=args.out, frames=args.frames, seed=args.seed, jobs=args.jobs)
     return 0
 
 
@@ -173,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=Path("benchmark-output"))
     s.add_argument("--frames", type=int, default=300)
     s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")
     s.set_defaults(func=_cmd_benchmark)
     return p
 

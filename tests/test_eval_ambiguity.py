@@ -56,8 +56,8 @@ def _observation(T: np.ndarray, tip: bool = True, tail: bool = True, dense: bool
     )
 
 
-def _lik(obs: Observation, switches: Switches = Switches()) -> FrameLikelihood:
-    return FrameLikelihood(obs, MeasurementModel(CAM, NEEDLE, switches=switches))
+def _lik(obs: Observation, switches: Switches | None = None) -> FrameLikelihood:
+    return FrameLikelihood(obs, MeasurementModel(CAM, NEEDLE, switches=switches or Switches()))
 
 
 def test_image_conic_holds_the_projected_circle_and_so_does_the_alternative() -> None:
@@ -123,8 +123,10 @@ def test_truth_mode_is_the_map_solved_from_the_truth() -> None:
     T = _pose(0.04, 35.0)
     obs = _observation(T)
     noisy = Observation(
-        frame=0, t_s=0.0, tip_px=obs.tip_px + rng.normal(0, 1.0, 2), tail_px=obs.tail_px + rng.normal(0, 1.0, 2),
-        backbone_px=obs.backbone_px + rng.normal(0, 1.2, obs.backbone_px.shape), cam_T_grasper=obs.cam_T_grasper,
+        frame=0, t_s=0.0, tip_px=obs.tip_px + rng.normal(0, 1.0, 2),
+        tail_px=obs.tail_px + rng.normal(0, 1.0, 2),
+        backbone_px=obs.backbone_px + rng.normal(0, 1.2, obs.backbone_px.shape),
+        cam_T_grasper=obs.cam_T_grasper,
     )
     lik = _lik(noisy)
     fa = analyse_frame(lik, T)

@@ -104,11 +104,19 @@ def _axis_shares(axes_values: np.ndarray) -> np.ndarray:
 
 
 def error_distributions(groups: Sequence[tuple[str, Sequence[MethodErrors]]], path: Path) -> Path:
-    """Half-violins of translation / rotation errors per method, one column per recording (module doc)."""
+    """Half-violins of translation / rotation errors per method, one column per recording (module doc).
+
+    A method keeps its colour in every column.
+    """
     ncol = max(len(groups), 1)
-    fig = Figure(figsize=(4.2 * ncol + 0.8, 8.0))
-    gs = fig.add_gridspec(4, ncol, height_ratios=[3, 1, 3, 1], hspace=0.45, wspace=0.3)
+    most = max((len(m) for _, m in groups), default=1)
+    fig = Figure(figsize=(max(4.2, 0.8 * most + 1.2) * ncol + 0.8, 9.0 if most > 3 else 8.0))
+    gs = fig.add_gridspec(4, ncol, height_ratios=[3, 1, 3, 1], hspace=0.75 if most > 3 else 0.35, wspace=0.3)
     rng = np.random.default_rng(0)
+    colour_of: dict[str, str] = {}
+    for _, methods in groups:
+        for m in methods:
+            colour_of.setdefault(m.label, METHOD_COLOURS[len(colour_of) % len(METHOD_COLOURS)])
     for c, (title, methods) in enumerate(groups):
         pos = np.arange(len(methods), dtype=float)
         labels = [m.label for m in methods]
@@ -119,8 +127,8 @@ def error_distributions(groups: Sequence[tuple[str, Sequence[MethodErrors]]], pa
         for r, (key, axes_key, unit) in enumerate(panels):
             ax = fig.add_subplot(gs[2 * r, c])
             for i, m in enumerate(methods):
-                _half_violin(ax, getattr(m, key), pos[i], METHOD_COLOURS[i % len(METHOD_COLOURS)], rng)
-            ax.set_xticks(pos, labels, fontsize=8, rotation=20 if len(methods) > 3 else 0)
+                _half_violin(ax, getattr(m, key), pos[i], colour_of[m.label], rng)
+            ax.set_xticks(pos, [""] * len(methods))
             ax.set_xlim(-0.7, len(methods) - 0.2)
             ax.set_ylabel(unit, fontsize=8)
             ax.grid(axis="y", alpha=0.3)
@@ -132,13 +140,16 @@ def error_distributions(groups: Sequence[tuple[str, Sequence[MethodErrors]]], pa
             for j, name in enumerate("XYZ"):
                 bx.bar(pos, shares[:, j], bottom=bottom, color=AXIS_COLOURS[j], width=0.6, label=name)
                 bottom += shares[:, j]
-            bx.set_xticks(pos, [""] * len(methods))
+            if len(methods) > 3:
+                bx.set_xticks(pos, labels, fontsize=7, rotation=30, ha="right", rotation_mode="anchor")
+            else:
+                bx.set_xticks(pos, labels, fontsize=8)
             bx.set_xlim(-0.7, len(methods) - 0.2)
             bx.set_ylim(0, 1)
             bx.set_ylabel("axis share", fontsize=7)
             bx.tick_params(labelsize=7)
             if c == ncol - 1 and r == 0:
-                bx.legend(fontsize=6, ncol=3, loc="upper right", bbox_to_anchor=(1.0, 1.45))
+                bx.legend(fontsize=6, ncol=3, loc="lower right", bbox_to_anchor=(1.0, 1.0), frameon=False)
     return _save(fig, path)
 
 
@@ -192,8 +203,11 @@ def error_over_time(
     ax.set_ylim(-0.2, 2.3)
     ax.set_xlabel("time (s)", fontsize=9)
     ax.grid(alpha=0.3)
+    lo, hi = (float(t.min()), float(t.max())) if t.size else (0.0, 1.0)
+    if hi <= lo:
+        lo, hi = lo - 0.5, hi + 0.5
     for a in axes:
-        a.set_xlim(t.min() if t.size else 0.0, t.max() if t.size else 1.0)
+        a.set_xlim(lo, hi)
     return _save(fig, path)
 
 

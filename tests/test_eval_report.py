@@ -1,0 +1,215 @@
+"""Evaluation reports: summary.csv, Tables II/III, figures, on synthetic results of a simulated run."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from factors.lie import se3_exp
+from pinpoint_fg.cli import main
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.eval.ambiguity import label_frames
+from pinpoint_fg.eval.metrics import nll_score
+from pinpoint_fg.eval.report import (
+    ABLATION_VARIANTS,
+    evaluate,
+    evaluate_results,
+    variant_name,
+)
+from pinpoint_fg.io.recording import Recording, read_recording
+from pinpoint_fg.io.result import FrameEstimate, ResultWriter
+from pinpoint_fg.likelihood import MeasurementModel
+from pinpoint_fg.sim.scenarios import simulate
+
+F = 12
+OFFSET_M = np.array([1e-3, 0.0, 0.0])
+REQUIRED = (
+    "method", "recording", "frames", "trans_mean_mm", "trans_std_mm", "rot_mean_deg", "rot_std_deg",
+    "trans_q95_mm", "rot_q95_deg", "nlls_trans", "nlls_rot", "is_trans", "is_rot", "bimodal_share",
+    "truth_in_dominant_share", "floor_trans_mm", "trans_floor_multiple", "bimodal_ambiguous_rate",
+    "bimodal_clear_rate", "latency_median_ms", "latency_p95_ms",
+)
+
+
+def _particles(
+    kind: str, T_map: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Synthetic particle sets around the MAP: two well separated clusters, one pose, or a weighted blob."""
+    if kind == "single":
+        return T_map[None], None
+    if kind == "bimodal":
+        xi = rng.normal(size=(50, 6)) * np.r_[[np.radians(1.0)] * 3, [0.2e-3] * 3]
+        xi[35:, 0] += 0.7  # 15 particles in a second mode, 40 deg away
+        xi[0] = 0.0  # the MAP itself
+        return T_map[None] @ se3_exp(xi), None
+    xi = rng.normal(size=(200, 6)) * np.r_[[np.radians(2.0)] * 3, [0.3e-3] * 3]
+    xi[0] = 0.0
+    w = rng.uniform(0.5, 1.5, 200)
+    return T_map[None] @ se3_exp(xi), w / w.sum()
+
+
+def _write_result(out: Path, rec: Recording, method: str, kind: str, disabled: tuple[str, ...] = (),
+                  recording_path: str | None = "auto", name: str | None = None, frames: int = F) -> Path:
+    rng = np.random.default_rng(len(method) + 7 * len(disabled))
+    weighted = kind == "weighted"
+    path = str(rec.root.resolve()) if recording_path == "auto" else recording_path
+    settings = {"method": method, "particles": 1, "window": 1, "seed": 0, "disabled": list(disabled),
+                "noise_file": None}
+    with ResultWriter(out, method, settings, name or rec.info.name, path, weighted=weighted) as w:
+        for r in rec.frames[:frames]:
+            T = r.cam_T_needle_gt.copy()
+            T[:3, 3] += OFFSET_M
+            P, wt = _particles(kind, T, rng)
+            w.write(FrameEstimate(
+                frame=r.frame, t_s=r.t_s, cam_T_needle=T, q95_trans_m=2e-3,
+                q95_rot_rad=float(np.radians(5.0)), bimodal=False, iterations=3, latency_ms=10.0 + r.frame,
+                particles_T=P, log_posterior=np.zeros(P.shape[0]), weight=wt,
+            ))
+    return out
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory) -> tuple[Recording, dict[str, Path], Path]:
+    base = tmp_path_factory.mktemp("report")
+    rec = read_recording(simulate("rotation", F, seed=3, out=base / "run"))
+    results = {
+        "svn": _write_result(base / "svn", rec, "svn", "bimodal"),
+        "pf": _write_result(base / "pf", rec, "pf", "weighted"),
+        "map": _write_result(base / "map", rec, "map", "single"),
+    }
+    return rec, results, base
+
+
+@pytest.fixture(scope="module")
+def report(setup: tuple[Recording, dict[str, Path], Path]):  # noqa: ANN201
+    rec, results, base = setup
+    return evaluate_results([results[m] for m in ("svn", "pf", "map")], out=base / "eval"), base / "eval"
+
+
+def _rows(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        return list(reader.fieldnames or []), list(reader)
+
+
+def test_summary_csv_has_the_required_columns_and_values(report, setup) -> None:  # noqa: ANN001
+    _, out = report
+    rec = setup[0]
+    header, rows = _rows(out / "summary.csv")
+    assert set(REQUIRED) <= set(header)
+    by = {r["method"]: r for r in rows}
+    assert list(by) == ["svn", "pf", "map"]
+    for r in rows:
+        assert int(r["frames"]) == F and r["recording"] == rec.info.name
+        assert float(r["trans_mean_mm"]) == pytest.approx(1.0, abs=1e-9)  # the 1 mm offset in x
+        assert float(r["trans_x_mean_mm"]) == pytest.approx(1.0, abs=1e-9)
+        assert float(r["trans_z_mean_mm"]) == pytest.approx(0.0, abs=1e-9)
+        assert float(r["rot_mean_deg"]) == pytest.approx(0.0, abs=1e-6)
+        assert float(r["trans_q95_mm"]) == pytest.approx(2.0)
+        assert float(r["nlls_trans"]) == pytest.approx(float(nll_score(1.0, 2.0 / 1.959963984540054)))
+        assert float(r["is_trans"]) == pytest.approx(2.0)  # inside [0, q95]: the width only
+        assert float(r["latency_median_ms"]) == pytest.approx(10.0 + (F - 1) / 2)
+        floor = float(r["floor_trans_mm"])
+        assert np.isfinite(floor) and float(r["trans_floor_multiple"]) == pytest.approx(1.0 / floor, rel=1e-9)
+        assert float(r["trans_mm_none"]) == pytest.approx(1.0)  # rotation scenario: never occluded
+        assert r["trans_mm_heavy"] == "nan"
+    assert float(by["svn"]["bimodal_share"]) == 1.0
+    assert float(by["svn"]["truth_in_dominant_share"]) == 1.0
+    assert float(by["pf"]["bimodal_share"]) == 0.0
+    assert float(by["map"]["bimodal_share"]) == 0.0
+    assert by["map"]["truth_in_dominant_share"] == "nan"
+    labels = label_frames(rec, MeasurementModel(rec.info.camera, rec.info.needle))
+    n_amb, n_clear = int(np.sum(labels == "ambiguous")), int(np.sum(labels == "clear"))
+    assert int(by["svn"]["ambiguous_frames"]) == n_amb and int(by["svn"]["clear_frames"]) == n_clear
+    assert by["svn"]["bimodal_clear_rate"] == ("1.0" if n_clear else "nan")
+    assert by["map"]["bimodal_ambiguous_rate"] == ("0.0" if n_amb else "nan")
+
+
+def test_tables_are_shaped_like_the_paper(report) -> None:  # noqa: ANN001
+    rep, out = report
+    text = (out / "tables.md").read_text()
+    assert "## Tracking comparison (Table II)" in text and "Table III" not in text
+    lines = rep.table_ii.splitlines()
+    header = "| Method | Recording | Metric | X | Y | Z | Total | Unc (p95) | NLL-S | IS | × floor |"
+    assert lines[0] == header
+    assert len(lines) == 2 + 2 * 3
+    assert [ln.split("|")[3].strip() for ln in lines[2:4]] == ["Trans (mm)", "Rot (deg)"]
+    assert lines[2].split("|")[7].strip() == "1.00±0.00"
+    assert rep.table_iii == ""
+    methods = [ln.split()[1] for ln in rep.text.splitlines()[2:5]]
+    assert methods == ["svn", "pf", "map"]
+
+
+def test_figures_are_written(report) -> None:  # noqa: ANN001
+    _, out = report
+    names = {p.name for p in out.glob("*.png")}
+    assert "errors.png" in names
+    assert sum(n.startswith("error_time_") for n in names) == 3
+    assert any(n.startswith("particle_cloud_") for n in names)
+    for p in out.glob("*.png"):
+        data = p.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+def test_ablation_results_give_table_iii_and_bars(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    rec, results, _ = setup
+    paths = [
+        _write_result(tmp_path / "svgd", rec, "svgd", "bimodal", frames=4),
+        _write_result(tmp_path / "nodense", rec, "svn", "bimodal", ("dense",), frames=4),
+        _write_result(tmp_path / "full", rec, "svn", "bimodal", frames=4),
+    ]
+    rep = evaluate_results(paths, out=tmp_path / "eval")
+    lines = rep.table_iii.splitlines()
+    assert lines[0] == f"### {rec.info.name}"
+    titles = [ln.split("|")[1].strip() for ln in lines[4:]]
+    assert titles == ["All (full model)", "No dense image", "SVGD (no Hessian)"]
+    assert "## Ablations (Table III)" in (tmp_path / "eval" / "tables.md").read_text()
+    assert (tmp_path / "eval" / f"ablation_{rec.info.name}.png").exists()
+    assert [ev.variant for ev in rep.evaluations] == ["svgd", "no-dense", "full"]
+
+
+def test_variant_names_cover_the_ablation_matrix() -> None:
+    for name, method, disabled, _ in ABLATION_VARIANTS:
+        assert variant_name(method, disabled) == name
+    assert variant_name("svn", ("tail", "tip")) == "no-keypoints"
+    assert variant_name("pf", ()) == "full"
+    assert variant_name("svn", ("motion",)) == "disable-motion"
+
+
+def test_cli_evaluate_prints_the_comparison(setup, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
+    _, results, _ = setup
+    assert main(["evaluate", str(results["map"]), "--out", str(tmp_path / "e")]) == 0
+    assert "map" in capsys.readouterr().out
+    assert (tmp_path / "e" / "summary.csv").exists()
+    assert evaluate([results["map"]], out=tmp_path / "e2").splitlines()[0].startswith("recording")
+
+
+def test_recording_given_explicitly_or_missing(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    rec, _, _ = setup
+    r = _write_result(tmp_path / "nopath", rec, "map", "single", recording_path=None, frames=3)
+    with pytest.raises(InputError, match="recording_path"):
+        evaluate_results([r], out=tmp_path / "e", figures=False)
+    rep = evaluate_results([r], recording=rec.root, out=tmp_path / "e", figures=False, ambiguity=False)
+    assert rep.evaluations[0].row["frames"] == 3
+    assert np.isnan(rep.evaluations[0].row["bimodal_ambiguous_rate"])
+    assert np.isfinite(rep.evaluations[0].row["floor_trans_mm"])
+
+
+def test_mismatched_recording_and_unknown_frames_are_input_errors(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    rec, _, _ = setup
+    r = _write_result(tmp_path / "other", rec, "map", "single", name="another-run", frames=2)
+    with pytest.raises(InputError, match="another-run"):
+        evaluate_results([r], out=tmp_path / "e", figures=False)
+    r2 = _write_result(tmp_path / "late", rec, "map", "single", frames=2)
+    info = json.loads((r2 / "result.json").read_text())
+    est = (r2 / "estimates.csv").read_text().splitlines()
+    est[2] = "999" + est[2][est[2].index(","):]  # frame 999 is not in the recording
+    (r2 / "estimates.csv").write_text("\n".join(est) + "\n")
+    assert info["complete"]
+    with pytest.raises(InputError) as exc:
+        evaluate_results([r2], out=tmp_path / "e", figures=False)
+    assert "999" in str(exc.value) and "estimates.csv" in str(exc.value)

@@ -198,8 +198,10 @@ def test_nll_score_hand_values() -> None:
     # 0.5 log(2 pi 4) + 9 / 8
     np.testing.assert_allclose(nll_score(np.array([1.0, 3.0]), 2.0), [1.7370857137646180, 2.7370857137646180])
     # zero spread: floored, finite
-    assert SIGMA_FLOOR == 1e-9
-    assert nll_score(0.0, 0.0) == pytest.approx(0.5 * (math.log(2 * math.pi) - 41.44653167389282), abs=1e-12)
+    assert SIGMA_FLOOR == 1e-2
+    # 0.5 log(2 pi 1e-4) = 0.5 (log 2 pi - 9.210340371976184)
+    assert nll_score(0.0, 0.0) == pytest.approx(0.5 * (math.log(2 * math.pi) - 9.210340371976184), abs=1e-12)
+    assert nll_score(1.0, 0.0) == pytest.approx(0.5 * (math.log(2 * math.pi) - 9.210340371976184) + 5000.0)
 
 
 def test_interval_score_hand_values() -> None:

@@ -33,8 +33,12 @@ from pinpoint_fg.errors import InputError
 Z_975 = 1.959963984540054
 """Standard-normal 97.5 % point: ``q95 = Z_975 · sigma`` for ``|err|`` with ``err ~ N(0, sigma^2)``."""
 
-SIGMA_FLOOR = 1e-9
-"""Smallest sigma used by :func:`nll_score`, in the unit of ``err`` (a zero spread scores finitely)."""
+SIGMA_FLOOR = 1e-2
+"""Smallest sigma used by :func:`nll_score`, in the unit of ``err`` — the reports use mm and degrees,
+so 0.01 mm / 0.01 deg, far below anything this sensing resolves. A tracker claiming zero spread
+(a collapsed particle filter, one hypothesis left after pruning) is then scored as claiming
+0.01: still punished hard when wrong (err 1 mm -> NLL-S 5000), but a mean over frames stays
+readable instead of being swamped by 1e17 from a few such frames."""
 
 _AXES = ("x", "y", "z")
 
@@ -243,7 +247,7 @@ def sigma_from_q95(q95: np.ndarray) -> np.ndarray:
 def nll_score(err: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """NLL-S: ``0.5 log(2 pi sigma^2) + err^2 / (2 sigma^2)``, element-wise (broadcast).
 
-    ``sigma`` is floored at :data:`SIGMA_FLOOR` (1e-9 in the unit of ``err``), so a particle set
+    ``sigma`` is floored at :data:`SIGMA_FLOOR` (0.01 in the unit of ``err``: mm or deg in reports), so a particle set
     with zero spread scores finitely (and very badly unless ``err`` is ~0 as well).
     """
     err = np.asarray(err, dtype=float)

@@ -256,6 +256,7 @@ def seed_particles(
         C = fallback_candidates(lik, steps, cfg.default_depth_m)
         nll = lik.nll(C)
     modes, _ = select_modes(C, nll, cfg)
+    modes = modes[: max(1, int(n_particles))]  # fewer particles than modes: keep the best ones
     m = modes.shape[0]
     counts = np.full(m, n_particles // m)
     counts[0] += n_particles - counts.sum()

@@ -98,7 +98,8 @@ class Linearization:
 class Window:
     """The sliding windows of all hypotheses (see module docstring)."""
 
-    def __init__(self, length: int, motion_sqrt_info: np.ndarray, forgetting: float = 0.9) -> None:
+    def __init__(self, length: int, process_cov: np.ndarray, forgetting: float = 0.9) -> None:
+        """``process_cov``: per-frame covariance ``Q`` (6x6, ``[omega; v]``) of the motion residual."""
         if int(length) < 1:
             raise ValueError(f"window length must be >= 1, got {length}")
         if not 0.0 <= forgetting <= 1.0:
@@ -106,7 +107,10 @@ class Window:
         self.length = int(length)
         self.forgetting = float(forgetting)
         self.evidence: np.ndarray | None = None  # (N,) accumulated marginalised cost
-        self.motion_W = np.asarray(motion_sqrt_info, dtype=float)
+        Q = np.asarray(process_cov, dtype=float)
+        if Q.shape != (6, 6) or not np.all(np.isfinite(Q)) or np.min(np.linalg.eigvalsh(0.5 * (Q + Q.T))) <= 0:
+            raise ValueError("process_cov must be a finite, positive-definite (6, 6) covariance")
+        self.motion_W = np.linalg.inv(np.linalg.cholesky(0.5 * (Q + Q.T)))  # W^T W = Q^-1
         self.walk_W = np.diag(1.0 / RANDOM_WALK_SIGMA)
         self.poses: np.ndarray | None = None  # (L', N, 4, 4)
         self.frames: list[FrameLikelihood] = []

@@ -13,7 +13,7 @@ from factors.lie import se3_exp, se3_inverse
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.window import Window, sqrt_information
+from pinpoint_fg.window import RANDOM_WALK_SIGMA, Window
 
 CAM = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080)
 NEEDLE = NeedleModel()
@@ -47,7 +47,7 @@ def _observation(k: int, rng: np.random.Generator, image: bool = True) -> Observ
 
 def _window(L: int, N: int, rng: np.random.Generator, frames: int, image_every: int = 2) -> tuple[Window, list]:
     noise = NoiseConfig()
-    w = Window(L, sqrt_information(noise.process_cov))
+    w = Window(L, noise.process_cov)
     obs = [_observation(k, rng, image=(k % image_every == 0)) for k in range(frames)]
     start = _truth(0) @ se3_exp(rng.normal(size=(N, 6)) * np.r_[[0.05] * 3, [1e-3] * 3])
     w.start(start, FrameLikelihood(obs[0], MODEL), np.r_[[0.3] * 3, [0.01] * 3])
@@ -129,3 +129,25 @@ def test_marginalisation_keeps_information_and_evidence_finite() -> None:
     assert np.all(eig > 0) and np.all(np.isfinite(w.evidence))
     # the prior of a frame with only kinematics still constrains all six directions
     assert np.all(np.isfinite(w.prior_mean))
+
+
+def test_motion_term_is_whitened_by_the_process_noise() -> None:
+    """Two poses off the grasper's motion by a known tangent d: the window cost is 1/2 |d / sigma_Q|^2."""
+    noise = NoiseConfig()
+    sigma = np.sqrt(np.diag(noise.process_cov))
+    w = Window(2, noise.process_cov)
+    T0 = _truth(0)
+    empty = FrameLikelihood(Observation(0, 0.0), MODEL)
+    w.start(T0[None], empty, np.full(6, 1e6))  # a negligible prior
+    D = se3_exp(np.r_[0.01, -0.02, 0.03, 1e-3, 0.0, -2e-3])
+    w.push(FrameLikelihood(Observation(1, 0.033), MODEL), D, use_motion=True)
+    d = np.r_[0.02, 0.0, -0.01, 2e-4, 1e-4, 0.0]
+    w.poses[1] = D @ T0[None] @ se3_exp(d)
+    lin = w.linearize()
+    np.testing.assert_allclose(lin.window_value[0], 0.5 * np.sum((d / sigma) ** 2), rtol=1e-6)
+    # without kinematics: the random walk's sigma
+    w2 = Window(2, noise.process_cov)
+    w2.start(T0[None], empty, np.full(6, 1e6))
+    w2.push(FrameLikelihood(Observation(1, 0.033), MODEL), None, use_motion=True)
+    w2.poses[1] = T0[None] @ se3_exp(d)
+    np.testing.assert_allclose(w2.linearize().window_value[0], 0.5 * np.sum((d / RANDOM_WALK_SIGMA) ** 2), rtol=1e-6)

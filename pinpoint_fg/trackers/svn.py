@@ -57,7 +57,7 @@ from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, summarize
-from pinpoint_fg.window import Window, sqrt_information
+from pinpoint_fg.window import Window
 
 #: Weak prior on the very first pose of each hypothesis: [omega x3 (rad), v x3 (m)].
 FIRST_PRIOR_SIGMA = np.array([np.deg2rad(30.0)] * 3 + [10e-3] * 3)
@@ -140,7 +140,7 @@ class SvnTracker(Tracker):
             step_size=self.svn.step_size,
             isotropic=self.svn.isotropic,
         )
-        self.window = Window(config.window, sqrt_information(noise.process_cov), self.svn.forgetting)
+        self.window = Window(config.window, noise.process_cov, self.svn.forgetting)
         self._times: list[tuple[int, float]] = []
 
     @property

@@ -141,7 +141,8 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
         lines.append(
             f"{r['scenario']:<12} {r['method']:<6} {r['trans_mean_mm']:8.2f} {r['rot_mean_deg']:8.1f} "
             f"{r['trans_q95_mm']:7.2f} {r['rot_q95_deg']:8.1f} {100 * r['bimodal_share']:7.0f}% "
-            f"{100 * r['bimodal_ambiguous_rate']:6.0f}% {r['trans_floor_multiple']:5.1f}/{r['rot_floor_multiple']:<5.1f} "
+            f"{100 * r['bimodal_ambiguous_rate']:6.0f}% "
+            f"{r['trans_floor_multiple']:5.1f}/{r['rot_floor_multiple']:<5.1f} "
             f"{r['latency_median_ms']:10.1f} {r['latency_p95_ms']:7.1f} {ratio_pf:13.2f} {ratio_map:7.2f}"
         )
     text = "\n".join(lines)

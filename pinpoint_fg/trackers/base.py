@@ -16,7 +16,7 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera
 from pinpoint_fg.eval.metrics import tangent_spread
-from pinpoint_fg.likelihood import MeasurementModel, Switches
+from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation
 
@@ -53,6 +53,29 @@ class Estimate:
     """True when every hypothesis was implausible and the particles were re-seeded this frame."""
     extra: dict = field(default_factory=dict)
     """Method-specific per-frame numbers (appended as result columns)."""
+
+
+#: :func:`implausible` fires when the best hypothesis's root-mean-square whitened residual exceeds this.
+IMPLAUSIBLE_RMS_SIGMA = 5.0
+
+
+def implausible(best_nll: float, lik: FrameLikelihood, rms_sigma: float = IMPLAUSIBLE_RMS_SIGMA) -> bool:
+    """True when even the best hypothesis cannot explain this frame, so the hypotheses should be re-seeded.
+
+    With ``m = lik.dim`` whitened residuals, ``2 nll`` at the true pose is about chi-square(m)
+    (mean ``m``). The criterion is ``nll > 1/2 rms_sigma^2 m``: the best pose's residuals are
+    ``rms_sigma`` (5) standard deviations off on average, far outside chi-square's range for every
+    ``m`` (for m = 2 the chance is e^-25, for m = 200 it is nil) but still tolerant of a moderately
+    mis-calibrated noise model. The cheirality penalty is part of ``nll`` and counts against it.
+    A frame without residuals (``m = 0``: no image evidence, no kinematics) can judge nothing and
+    returns False; a non-finite ``best_nll`` returns True.
+    """
+    if not np.isfinite(best_nll):
+        return True
+    if lik.dim == 0:
+        return False
+    return bool(best_nll > 0.5 * rms_sigma**2 * lik.dim)
+
 
 
 def summarize(particles: np.ndarray, log_posterior: np.ndarray, weights: np.ndarray | None = None,

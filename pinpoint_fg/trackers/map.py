@@ -47,7 +47,7 @@ frame's motion and measurement factors, and a weak prior on the new pose (if tha
 fresh start at the predicted pose). If ``Marginals`` raises, it is retried with weak priors
 (``prior_sigma``) on every pose of the window, and failing that the weak prior's covariance is
 reported. Both count in ``Estimate.extra["recovered"]``. When the estimate explains the frame
-implausibly badly (:func:`pinpoint_fg.trackers.pf.implausible`, the particle filter's
+implausibly badly (:func:`pinpoint_fg.trackers.base.implausible`, the criterion every tracker
 criterion) the smoother is restarted from a fresh seeding of the frame (``Estimate.reseeded``);
 the smoothed output then pauses until the new window holds ``L`` frames again. Graph keys are
 never iterated as temporary ``KeySet`` objects (GTSAM_NOTES §6).
@@ -66,8 +66,7 @@ from pinpoint_fg.eval.metrics import weighted_quantile
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig
-from pinpoint_fg.trackers.pf import implausible
+from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible
 from pinpoint_fg.window import RANDOM_WALK_SIGMA
 
 

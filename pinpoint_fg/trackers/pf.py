@@ -32,33 +32,12 @@ from factors.lie import se3_exp
 from pinpoint_fg.init import seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, summarize
+from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible, summarize
 from pinpoint_fg.window import RANDOM_WALK_SIGMA
-
-#: :func:`implausible` fires when the best hypothesis's root-mean-square whitened residual exceeds this.
-IMPLAUSIBLE_RMS_SIGMA = 5.0
 
 #: Particles per batch when evaluating the likelihood: the residual Jacobians it builds scale as
 #: N x pixels x 6, and batches of ~100 keep them in cache (3000 particles at once are ~6x slower).
 NLL_CHUNK = 128
-
-
-def implausible(best_nll: float, lik: FrameLikelihood, rms_sigma: float = IMPLAUSIBLE_RMS_SIGMA) -> bool:
-    """True when even the best hypothesis cannot explain this frame, so the hypotheses should be re-seeded.
-
-    With ``m = lik.dim`` whitened residuals, ``2 nll`` at the true pose is about chi-square(m)
-    (mean ``m``). The criterion is ``nll > 1/2 rms_sigma^2 m``: the best pose's residuals are
-    ``rms_sigma`` (5) standard deviations off on average, far outside chi-square's range for every
-    ``m`` (for m = 2 the chance is e^-25, for m = 200 it is nil) but still tolerant of a moderately
-    mis-calibrated noise model. The cheirality penalty is part of ``nll`` and counts against it.
-    A frame without residuals (``m = 0``: no image evidence, no kinematics) can judge nothing and
-    returns False; a non-finite ``best_nll`` returns True.
-    """
-    if not np.isfinite(best_nll):
-        return True
-    if lik.dim == 0:
-        return False
-    return bool(best_nll > 0.5 * rms_sigma**2 * lik.dim)
 
 
 def batched_nll(lik: FrameLikelihood, cam_T_needle: np.ndarray, chunk: int = NLL_CHUNK) -> np.ndarray:

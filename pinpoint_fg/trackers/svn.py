@@ -56,7 +56,7 @@ from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, summarize
+from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible, summarize
 from pinpoint_fg.window import Window
 
 #: Weak prior on the very first pose of each hypothesis: [omega x3 (rad), v x3 (m)].
@@ -95,8 +95,6 @@ class SvnSettings:
     """Early stop: best log-posterior change below this, twice in a row."""
     collapse_nll: float = 10.0
     """Safeguard: largest accepted rise of a particle's negative log-posterior per step."""
-    reseed_margin: float = 30.0
-    """Re-seed when the best cost exceeds 2 x (residual count) + this margin and seeding does better."""
     prune_nll: float = 30.0
     """Hypotheses whose total cost exceeds the best by more than this are replaced (0 disables... use inf)."""
     forgetting: float = 0.9
@@ -105,16 +103,6 @@ class SvnSettings:
     """Damped Gauss-Newton steps applied to the MAP particle after transport (0 disables)."""
     jitter_sigma: tuple[float, ...] = (np.deg2rad(1.0),) * 3 + (0.2e-3,) * 3
     """Spread of the copies that replace pruned hypotheses, [omega x3 (rad), v x3 (m)]."""
-
-
-def implausible(best_nll: float, lik: FrameLikelihood, margin: float = 30.0) -> bool:
-    """True when even the best hypothesis explains the frame far worse than noise would.
-
-    Whitened residuals are ~N(0, 1), so at the truth ``nll ≈ m / 2`` for ``m`` residuals; a best
-    cost above ``2 m + margin`` (four times the expected chi-square plus a margin) means every
-    hypothesis has lost the needle. Frames without image evidence never trigger it.
-    """
-    return bool(lik.has_image_evidence and best_nll > 2.0 * lik.dim + margin)
 
 
 class SvnTracker(Tracker):
@@ -274,7 +262,7 @@ class SvnTracker(Tracker):
             self._jitter_copies()
         first = self.frames_seen < self.svn.first_frames
         iters, value = self._transport(self.svn.iters_first if first else self.svn.iters_later)
-        if implausible(float(np.min(lik.nll(self.window.newest))), lik, self.svn.reseed_margin):
+        if implausible(float(lik.nll(self.window.newest[int(np.argmin(value))][None])[0]), lik):
             kept = (self.window.poses.copy(), self.window.prior_mean.copy(), self.window.prior_W.copy(),
                     self.window.evidence.copy())
             kept_frames = (list(self.window.frames), list(self.window.deltas), list(self.window.delta_W))

@@ -1,0 +1,102 @@
+"""Smoke tests of every ``pinpoint-fg`` subcommand on short simulated runs, and of bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pinpoint_fg.cli import main
+from pinpoint_fg.io.result import read_result
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("cli")
+    out = {}
+    for sc in ("normal", "calibration"):
+        out[sc] = root / sc
+        assert main(["simulate", "--scenario", sc, "--frames", "12", "--seed", "2", "--out", str(out[sc])]) == 0
+    return out
+
+
+def test_validate_ok_and_bad(runs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["validate", str(runs["normal"])]) == 0
+    assert "frames" in capsys.readouterr().out
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "recording.json").write_text("{}")
+    (bad / "frames.csv").write_text("frame,t_s\n0,abc\n")
+    assert main(["validate", str(bad)]) != 0
+    err = capsys.readouterr().err
+    assert "recording.json" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("method", ["svn", "svgd", "pf", "map"])
+def test_track_every_method(runs: dict[str, Path], tmp_path: Path, method: str) -> None:
+    out = tmp_path / method
+    args = ["track", str(runs["normal"]), "--method", method, "--out", str(out), "--seed", "1"]
+    if method == "pf":
+        args += ["--particles", "300"]
+    assert main(args) == 0
+    res = read_result(out)
+    assert len(res.frame) == 12 and np.all(np.isfinite(res.cam_T_needle))
+    assert (out / "trajectory.tum").read_text().count("\n") == 12
+
+
+def test_track_with_window_disable_and_noise_file(runs: dict[str, Path], tmp_path: Path) -> None:
+    noise = tmp_path / "noise.json"
+    assert main(["calibrate", str(runs["calibration"]), "--out", str(noise)]) == 0
+    assert json.loads(noise.read_text())["format"] == "pinpoint-noise"
+    out = tmp_path / "w3"
+    assert main(["track", str(runs["normal"]), "--window", "3", "--disable", "dense,tip", "--noise", str(noise),
+                 "--particles", "20", "--out", str(out)]) == 0
+    assert (out / "smoothed.csv").exists()
+    assert read_result(out).smoothed is not None
+
+
+def test_track_bad_arguments_give_clear_errors(runs: dict[str, Path], tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["track", str(runs["normal"]), "--disable", "nonsense", "--out", str(tmp_path / "x")])
+    assert main(["track", str(tmp_path / "missing"), "--out", str(tmp_path / "y")]) == 2
+    assert main(["track", str(runs["normal"]), "--noise", str(tmp_path / "none.json"),
+                 "--out", str(tmp_path / "z")]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_evaluate_and_ablate(runs: dict[str, Path], tmp_path: Path) -> None:
+    a, b = tmp_path / "svn", tmp_path / "map"
+    assert main(["track", str(runs["normal"]), "--method", "svn", "--particles", "20", "--out", str(a)]) == 0
+    assert main(["track", str(runs["normal"]), "--method", "map", "--out", str(b)]) == 0
+    rep = tmp_path / "report"
+    assert main(["evaluate", str(a), str(b), "--out", str(rep)]) == 0
+    assert (rep / "summary.csv").exists() and (rep / "tables.md").exists()
+    assert list(rep.glob("*.png"))
+    abl = tmp_path / "ablation"
+    assert main(["ablate", str(runs["normal"]), "--out", str(abl), "--jobs", "2", "--frames", "6"]) == 0
+    tables = (abl / "tables.md").read_text()
+    assert "Table III" in tables and "SVGD" in tables, tables[:400]
+
+
+def test_groundtruth_command(tmp_path: Path) -> None:
+    from pinpoint_fg.groundtruth import write_board_to_needle
+
+    run = tmp_path / "img"
+    assert main(["simulate", "--scenario", "slow", "--frames", "4", "--seed", "1", "--out", str(run), "--images"]) == 0
+    b2n = tmp_path / "b2n.json"
+    write_board_to_needle(b2n)
+    assert main(["groundtruth", str(run), "--board-to-needle", str(b2n)]) == 0
+
+
+@pytest.mark.slow
+def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--frames", "8", "--out", str(tmp_path / "demo")]) == 0
+    out = capsys.readouterr().out
+    assert "accuracy floor" in out and "svn" in out and "map" in out
+    assert (tmp_path / "demo" / "report" / "summary.csv").exists()
+    assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2"]) == 0
+    text = (tmp_path / "bench" / "benchmark.txt").read_text()
+    assert "median vs pf" in text and text.count("\n") == 1 + 5 * 4

@@ -105,7 +105,10 @@ class KeypointFactor(_UnaryPoseFactor):
 
 
 class ConicFactor(_UnaryPoseFactor):
-    """Sampson distances (M px) of M backbone pixels to the needle circle's image conic; one per frame."""
+    """Sampson distances (M px) of M backbone pixels to the needle circle's image conic; one per frame.
+
+    ``bias`` (px, default 0) is subtracted from every distance (a calibrated residual mean).
+    """
 
     def __init__(
         self,
@@ -114,6 +117,7 @@ class ConicFactor(_UnaryPoseFactor):
         radius_m: float,
         points_px: np.ndarray,
         noise: gtsam.noiseModel.Base,
+        bias: float = 0.0,
     ) -> None:
         K = _camera_K(camera)
         pts = as_points_px("points_px", points_px)
@@ -122,7 +126,15 @@ class ConicFactor(_UnaryPoseFactor):
         r_m = float(radius_m)
         if not np.isfinite(r_m) or r_m <= 0:
             raise ValueError(f"radius_m must be a positive finite number, got {radius_m!r}")
-        super().__init__(noise, key, pts.shape[0], lambda T: res.conic_residual(T, K, r_m, pts))
+        b = float(bias)
+        if not np.isfinite(b):
+            raise ValueError("bias must be finite")
+
+        def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            r, J = res.conic_residual(T, K, r_m, pts)
+            return r - b, J
+
+        super().__init__(noise, key, pts.shape[0], fn)
 
 
 class GraspPositionFactor(_UnaryPoseFactor):
@@ -137,17 +149,33 @@ class GraspPositionFactor(_UnaryPoseFactor):
 
 
 class GraspPerpendicularFactor(_UnaryPoseFactor):
-    """Grasp perpendicularity ``z_g . (R t_g)`` (1, unitless); both directions normalised."""
+    """Grasp perpendicularity ``z_g . (R t_g)`` (1, unitless); both directions normalised.
+
+    ``bias`` (default 0) is subtracted (a calibrated residual mean).
+    """
 
     def __init__(
-        self, key: int, needle_tangent: np.ndarray, grasper_axis_cam: np.ndarray, noise: gtsam.noiseModel.Base
+        self,
+        key: int,
+        needle_tangent: np.ndarray,
+        grasper_axis_cam: np.ndarray,
+        noise: gtsam.noiseModel.Base,
+        bias: float = 0.0,
     ) -> None:
         t = as_vector("needle_tangent", needle_tangent, 3)
         z = as_vector("grasper_axis_cam", grasper_axis_cam, 3)
         for name, v in (("needle_tangent", t), ("grasper_axis_cam", z)):
             if np.linalg.norm(v) < 1e-12:
                 raise ValueError(f"{name} must be a non-zero direction")
-        super().__init__(noise, key, 1, lambda T: res.grasp_perpendicular_residual(T, t, z))
+        b = float(bias)
+        if not np.isfinite(b):
+            raise ValueError("bias must be finite")
+
+        def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            r, J = res.grasp_perpendicular_residual(T, t, z)
+            return r - b, J
+
+        super().__init__(noise, key, 1, fn)
 
 
 class PosePriorFactor(_UnaryPoseFactor):

@@ -216,12 +216,12 @@ class FrameLikelihood:
         return nll, grad, H
 
     def gtsam_factors(self, key: int) -> list[gtsam.NonlinearFactor]:
-        """The same terms as GTSAM factors on ``key`` (bias folded into the measurement where it is additive).
+        """The same terms as GTSAM factors on ``key``, biases included.
 
         The biases of keypoint and grasp-position residuals shift the measurement
-        (``r - mu = pi(TX) - (z + mu)``); conic and perpendicularity biases are not additive in
-        a measurement, so factors are built only when those biases are zero (else ValueError).
-        The cheirality penalty has no factor: it is zero for every pose in front of the camera.
+        (``r - mu = pi(TX) - (z + mu)``); conic and perpendicularity factors take theirs as
+        ``bias``. The cheirality penalty has no factor: it is zero for every pose in front of
+        the camera.
         """
         cam, nd = self.model.camera, self.model.needle
         out: list[gtsam.NonlinearFactor] = []
@@ -231,15 +231,13 @@ class FrameLikelihood:
                 X = nd.tip_m if name == "tip" else nd.tail_m
                 out.append(KeypointFactor(key, cam, X, np.asarray(data) + n.mean, n.gtsam_model()))
             elif name == "conic":
-                if abs(n.mean[0]) > 0:
-                    raise ValueError("a conic bias cannot be expressed as a GTSAM ConicFactor")
                 pts = np.asarray(data)
                 out.append(ConicFactor(key, cam, nd.radius_m, pts,
-                                       gtsam.noiseModel.Isotropic.Sigma(len(pts), float(n.sigma[0]))))
+                                       gtsam.noiseModel.Isotropic.Sigma(len(pts), float(n.sigma[0])),
+                                       bias=float(n.mean[0])))
             elif name == "grasp_position":
                 out.append(GraspPositionFactor(key, nd.grasp_m, np.asarray(data) + n.mean, n.gtsam_model()))
             else:
-                if abs(n.mean[0]) > 0:
-                    raise ValueError("a perpendicularity bias cannot be expressed as a GTSAM factor")
-                out.append(GraspPerpendicularFactor(key, nd.grasp_tangent, data, n.gtsam_model()))
+                out.append(GraspPerpendicularFactor(key, nd.grasp_tangent, data, n.gtsam_model(),
+                                                    bias=float(n.mean[0])))
         return out

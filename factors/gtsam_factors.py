@@ -57,6 +57,17 @@ def _camera_K(camera: object) -> np.ndarray:
     return K
 
 
+def _reraise(exc: Exception) -> None:
+    """Re-raise ``exc`` from a callback without GTSAM's temporaries in its traceback.
+
+    ``this``, ``values`` and ``H`` are wrappers of C++ objects that die when the call unwinds;
+    a traceback keeping them lets a later ``repr`` of its frames (pytest, IPython, a debugger)
+    read freed memory and crash the interpreter. The callers clear those locals first; the
+    traceback is reset so the frames below (which saw them too) are not kept either.
+    """
+    raise exc.with_traceback(None)
+
+
 class _UnaryPoseFactor(gtsam.CustomFactor):
     """A one-pose factor whose residual/Jacobian come from a batched function ``T (1,4,4) -> r, J``."""
 
@@ -77,11 +88,15 @@ class _UnaryPoseFactor(gtsam.CustomFactor):
         return r.reshape(self._dim), J.reshape(self._dim, 6)
 
     def _evaluate(self, this: gtsam.CustomFactor, values: gtsam.Values, H: object) -> np.ndarray:
-        T = values.atPose3(this.keys()[0]).matrix()
-        r, J = self.residual(T)
-        if H is not None:
-            H[0] = np.ascontiguousarray(J, dtype=float)
-        return np.ascontiguousarray(r, dtype=float)
+        try:
+            T = values.atPose3(this.keys()[0]).matrix()
+            r, J = self.residual(T)
+            if H is not None:
+                H[0] = np.ascontiguousarray(J, dtype=float)
+            return np.ascontiguousarray(r, dtype=float)
+        except Exception as exc:
+            this = values = H = None  # noqa: F841 - see _reraise
+            _reraise(exc)
 
 
 class KeypointFactor(_UnaryPoseFactor):
@@ -208,9 +223,13 @@ class MotionFactor(gtsam.CustomFactor):
         return r[0], Jp[0], Jc[0]
 
     def _evaluate(self, this: gtsam.CustomFactor, values: gtsam.Values, H: object) -> np.ndarray:
-        keys = this.keys()
-        r, Jp, Jc = self.residual(values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix())
-        if H is not None:
-            H[0] = np.ascontiguousarray(Jp, dtype=float)
-            H[1] = np.ascontiguousarray(Jc, dtype=float)
-        return np.ascontiguousarray(r, dtype=float)
+        try:
+            keys = this.keys()
+            r, Jp, Jc = self.residual(values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix())
+            if H is not None:
+                H[0] = np.ascontiguousarray(Jp, dtype=float)
+                H[1] = np.ascontiguousarray(Jc, dtype=float)
+            return np.ascontiguousarray(r, dtype=float)
+        except Exception as exc:
+            this = values = H = keys = None  # noqa: F841 - see _reraise
+            _reraise(exc)

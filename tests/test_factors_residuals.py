@@ -291,3 +291,28 @@ def test_factor_survives_in_graph_after_python_object_dropped_and_lm_on_edge_on_
         init.insert(0, matrix_to_pose3(start))
         out = gtsam.LevenbergMarquardtOptimizer(g, init).optimize()
         assert np.all(np.isfinite(out.atPose3(0).matrix()))
+
+
+def test_exception_in_a_factor_callback_is_safe_to_inspect() -> None:
+    """A user error inside a callback (a Point3 under the pose key) raises, and printing the
+    traceback with every frame's locals (what pytest and IPython do) does not crash."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import traceback, gtsam, numpy as np
+        from factors.gtsam_factors import GraspPositionFactor, MotionFactor
+        for f in (GraspPositionFactor(0, [0.0, 0.0, 0.0], [0.0, 0.0, 0.05], gtsam.noiseModel.Isotropic.Sigma(3, 1.0)),
+                  MotionFactor(0, 1, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1.0))):
+            v = gtsam.Values(); v.insert(0, gtsam.Point3(0, 0, 1)); v.insert(1, gtsam.Point3(0, 0, 1))
+            try:
+                f.linearize(v)
+            except Exception as exc:
+                for frame, _ in traceback.walk_tb(exc.__traceback__):
+                    [repr(x) for x in frame.f_locals.values()]
+                print(type(exc).__name__, "caught")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.count("caught") == 2

@@ -264,3 +264,44 @@ def seed_particles(
     noise = rng.normal(size=(n_particles, 6)) * np.asarray(cfg.spread_sigma)
     noise[np.cumsum(np.r_[0, counts[:-1]])] = 0.0  # one particle sits exactly on each mode
     return base @ se3_exp(noise), modes
+
+
+def image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float) -> np.ndarray:
+    """The image conic ``adj(H)^T diag(1, 1, -r^2) adj(H)`` of the needle circle at a pose (unit Frobenius norm)."""
+    T = np.asarray(cam_T_needle, dtype=float)
+    H = K @ np.stack([T[:3, 0], T[:3, 1], T[:3, 3]], axis=1)
+    A = np.stack([np.cross(H[:, 1], H[:, 2]), np.cross(H[:, 2], H[:, 0]), np.cross(H[:, 0], H[:, 1])])
+    C = A.T @ np.diag([1.0, 1.0, -radius_m**2]) @ A
+    return C / np.linalg.norm(C)
+
+
+def twin_pose(lik: FrameLikelihood, cam_T_needle: np.ndarray, cfg: InitConfig = InitConfig(),
+              min_angle_rad: float = np.deg2rad(10.0)) -> tuple[np.ndarray, float] | None:
+    """The other circle pose with the same image ellipse as ``cam_T_needle``, fitted to this frame.
+
+    Both normal orientations and an in-plane angle grid are tried and polished on the frame's
+    likelihood; candidates that drift back within ``min_angle_rad`` of the given pose's plane are
+    discarded. Returns ``(pose (4, 4), nll)`` of the best twin, or None (edge-on / face-on views
+    have no distinct twin).
+    """
+    K, r = lik.model.camera.K, lik.model.needle.radius_m
+    T = np.asarray(cam_T_needle, dtype=float)
+    n_ref = T[:3, 2]
+    sols = circle_poses_from_conic(image_conic(T, K, r), K, r)
+    alt = [(c, n) for c, n in sols if abs(n @ n_ref) < np.cos(min_angle_rad)]
+    if not alt:
+        return None
+    c, n = alt[0]
+    steps = cfg.angle_steps
+    ang = np.linspace(0, 2 * np.pi, steps, endpoint=False)
+    Rz = np.zeros((steps, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
+    Rz[:, 2, 2] = 1.0
+    cands = np.concatenate([_poses(_frame_from_normal(s * n, np.array([1.0, 0.0, 0.0])) @ Rz,
+                                   np.broadcast_to(c, (steps, 3))) for s in (1.0, -1.0)])
+    cands, nll = polish(lik, cands, cfg.polish_iters)
+    keep = np.isfinite(nll) & (np.abs(cands[:, :3, 2] @ n_ref) < np.cos(min_angle_rad))
+    if not keep.any():
+        return None
+    i = int(np.argmin(np.where(keep, nll, np.inf)))
+    return cands[i], float(nll[i])

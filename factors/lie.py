@@ -228,6 +228,18 @@ def se3_adjoint(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Poses ``(..., 4, 4)`` from rotations ``(..., 3, 3)`` and translations ``(..., 3)`` (broadcast)."""
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    shape = np.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    T = np.zeros(shape + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
 def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """``T ⊕ xi = T @ Exp(xi)``, batched (GTSAM's ``Pose3.retract`` with the full exponential chart)."""
     return np.asarray(T, dtype=float) @ se3_exp(xi)

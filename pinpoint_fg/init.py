@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from factors.lie import local, se3_exp
+from factors.lie import homogeneous, local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.stein import floor_hessians
 
@@ -124,12 +124,6 @@ def _frame_from_normal(normal: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(n, x), n], axis=1)
 
 
-def _poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.zeros(R.shape[:-2] + (4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = t
-    T[..., 3, 3] = 1.0
-    return T
 
 
 def ellipse_candidates(lik: FrameLikelihood, steps: int) -> np.ndarray:
@@ -148,7 +142,7 @@ def ellipse_candidates(lik: FrameLikelihood, steps: int) -> np.ndarray:
             Rz = np.zeros((steps, 3, 3))
             Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
             Rz[:, 2, 2] = 1.0
-            out.append(_poses(R0 @ Rz, np.broadcast_to(centre, (steps, 3))))
+            out.append(homogeneous(R0 @ Rz, np.broadcast_to(centre, (steps, 3))))
     return np.concatenate(out, axis=0) if out else np.zeros((0, 4, 4))
 
 
@@ -177,7 +171,7 @@ def grasp_candidates(lik: FrameLikelihood, steps: int) -> np.ndarray:
     ey = np.sin(th) * radial + np.cos(th) * tang
     R = np.stack([ex, ey, nrm], axis=2)
     t = pg - nd.radius_m * radial
-    return _poses(R, t)
+    return homogeneous(R, t)
 
 
 def fallback_candidates(lik: FrameLikelihood, steps: int, depth_m: float) -> np.ndarray:
@@ -194,7 +188,7 @@ def fallback_candidates(lik: FrameLikelihood, steps: int, depth_m: float) -> np.
         for axis in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)):
             R0 = se3_exp(np.r_[np.asarray(axis) * tilt, 0, 0, 0])[:3, :3]
             Rz = se3_exp(np.stack([np.zeros(steps), np.zeros(steps), ang, *np.zeros((3, steps))], axis=1))[:, :3, :3]
-            out.append(_poses(R0 @ Rz, np.broadcast_to(centre, (steps, 3))))
+            out.append(homogeneous(R0 @ Rz, np.broadcast_to(centre, (steps, 3))))
     return np.concatenate(out, axis=0)
 
 
@@ -297,7 +291,7 @@ def twin_pose(lik: FrameLikelihood, cam_T_needle: np.ndarray, cfg: InitConfig = 
     Rz = np.zeros((steps, 3, 3))
     Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
     Rz[:, 2, 2] = 1.0
-    cands = np.concatenate([_poses(_frame_from_normal(s * n, np.array([1.0, 0.0, 0.0])) @ Rz,
+    cands = np.concatenate([homogeneous(_frame_from_normal(s * n, np.array([1.0, 0.0, 0.0])) @ Rz,
                                    np.broadcast_to(c, (steps, 3))) for s in (1.0, -1.0)])
     cands, nll = polish(lik, cands, cfg.polish_iters)
     keep = np.isfinite(nll) & (np.abs(cands[:, :3, 2] @ n_ref) < np.cos(min_angle_rad))

@@ -80,7 +80,7 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from factors.lie import se3_inverse, so3_exp
+from factors.lie import homogeneous, se3_inverse, so3_exp
 from pinpoint_fg.io.recording import FrameRecord, RecordingInfo
 from pinpoint_fg.sim.config import SimConfig
 from pinpoint_fg.sim.kinematics import (
@@ -183,12 +183,6 @@ class SimRun:
 # helpers
 
 
-def _poses(R: np.ndarray, p: np.ndarray) -> np.ndarray:
-    T = np.zeros(R.shape[:-2] + (4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = p
-    T[..., 3, 3] = 1.0
-    return T
 
 
 def _base_rotation(az_deg: float, tilt_deg: float, spin_deg: float) -> np.ndarray:
@@ -241,7 +235,7 @@ def _free_motion(
     R = G0[:3, :3] @ so3_exp(w)
     centre_rot = np.einsum("fij,j->fi", R, grasper_p_centre) + G0[:3, 3]
     if t.shape[0] < 2:
-        return _poses(R, G0[:3, 3] + 0.0 * d)
+        return homogeneous(R, G0[:3, 3] + 0.0 * d)
     dt = t[1] - t[0]
 
     def speed(scale: float) -> float:
@@ -258,7 +252,7 @@ def _free_motion(
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if speed(mid) < speed_m_s else (lo, mid)
         scale = 0.5 * (lo + hi)
-    return _poses(R, G0[:3, 3] + scale * d)
+    return homogeneous(R, G0[:3, 3] + scale * d)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -280,7 +274,7 @@ def _rigid(cfg: SimConfig, grasper: np.ndarray, n_arc: int) -> Trajectory:
 
 
 def _base_grasper(cfg: SimConfig, R_needle: np.ndarray, centre_m: np.ndarray) -> np.ndarray:
-    T = _poses(R_needle, np.asarray(centre_m, float))
+    T = homogeneous(R_needle, np.asarray(centre_m, float))
     return T @ needle_T_grasper(cfg.needle, cfg.grasper_tilt_rad)
 
 
@@ -295,7 +289,7 @@ def _scenario_slow(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, n_ar
     for axis in range(3):
         d[seg == axis, axis] = amp * prof[seg == axis]
     roll = np.where(seg == 3, roll_amp * prof, 0.0)
-    G = _poses(G0[:3, :3] @ rot_z(roll), G0[:3, 3] + d)
+    G = homogeneous(G0[:3, :3] @ rot_z(roll), G0[:3, 3] + d)
     return _rigid(cfg, G, n_arc)
 
 
@@ -307,7 +301,7 @@ def _scenario_normal(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, n_
 
 
 def _in_grasp_pose(G: np.ndarray, phi: np.ndarray, gTn: np.ndarray) -> np.ndarray:
-    Ry = _poses(rot_y(phi), np.zeros(phi.shape + (3,)))
+    Ry = homogeneous(rot_y(phi), np.zeros(phi.shape + (3,)))
     return G @ Ry @ gTn
 
 
@@ -347,7 +341,7 @@ def _scenario_suturing(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, 
     psi_end = eps + 2.0 * beta + protrude
     h = nd.radius_m * math.cos(beta)
     spin = math.degrees(math.pi / 2.0 - theta_d0)  # puts the tissue's inward normal away from the camera
-    T0 = _poses(_base_rotation(20.0, 50.0, spin), np.array([0.5e-3, 0.0, 0.040]))
+    T0 = homogeneous(_base_rotation(20.0, 50.0, spin), np.array([0.5e-3, 0.0, 0.040]))
     m = T0[:3, :3] @ np.array([math.cos(theta_d0), math.sin(theta_d0), 0.0])  # inward surface normal
     d_plane = float(m @ T0[:3, 3]) + h
     # phases
@@ -375,7 +369,7 @@ def _scenario_suturing(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, 
     free_d -= 2.0 * np.maximum(free_d @ m, 0.0)[:, None] * m[None, :]  # never back into the tissue
 
     def needle_pose(psi: np.ndarray) -> np.ndarray:
-        Rz = _poses(rot_z(psi), np.zeros((F, 3)))
+        Rz = homogeneous(rot_z(psi), np.zeros((F, 3)))
         T = T0[None] @ Rz
         T[:, :3, 3] += offset + free_d
         return T
@@ -412,7 +406,7 @@ def _scenario_calibration(cfg: SimConfig, t: np.ndarray, rng: np.random.Generato
     way = np.column_stack([xy, depth, az, tilt, spin])
     path = PchipInterpolator(tw, way, axis=0)(np.clip(t, 0.0, tw[-1]))
     R = rot_z(np.radians(path[:, 3])) @ rot_x(np.radians(path[:, 4])) @ rot_z(np.radians(path[:, 5]))
-    T = _poses(R, path[:, :3])
+    T = homogeneous(R, path[:, :3])
     return _rigid(cfg, T @ needle_T_grasper(cfg.needle, cfg.grasper_tilt_rad), n_arc)
 
 

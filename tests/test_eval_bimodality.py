@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -151,22 +149,15 @@ def test_degenerate_sets_are_unimodal() -> None:
     assert assess_bimodality(P, T_MAP, weights=w).reason == "degenerate"
 
 
-def test_speed_small_and_large_sets() -> None:
+def test_small_and_large_weighted_sets() -> None:
+    """Timings live in the benchmark, not here (tests never assert wall-clock times)."""
     rng = np.random.default_rng(8)
     small = np.concatenate([cloud(rng, 25, np.zeros(6), 0.3), cloud(rng, 25, FAR, 0.3)])
     big = np.concatenate([cloud(rng, 1500, np.zeros(6), 1.0), cloud(rng, 1500, FAR, 1.0)])
     w = rng.uniform(size=3000)
-    assess_bimodality(small, T_MAP)  # warm-up (imports, BLAS threads)
-    t0 = time.perf_counter()
-    for _ in range(5):
-        v_small = assess_bimodality(small, T_MAP)
-    t_small = (time.perf_counter() - t0) / 5
-    t0 = time.perf_counter()
+    v_small = assess_bimodality(small, T_MAP)
     v_big = assess_bimodality(big, T_MAP, weights=w)
-    t_big = time.perf_counter() - t0
     assert v_small.bimodal and v_big.bimodal and v_big.n_fit_points == 1000
-    # generous guards (targets: a few ms and < 100 ms) so a busy machine does not fail them
-    assert t_small < 0.1 and t_big < 0.5
 
 
 def test_principal_plane() -> None:

@@ -105,7 +105,7 @@ class SvnSettings:
     collapse_nll: float = 10.0
     """Safeguard: largest accepted rise of a particle's negative log-posterior per step."""
     prune_nll: float = 30.0
-    """Hypotheses whose total cost exceeds the best by more than this are replaced (0 disables... use inf)."""
+    """Hypotheses whose mode value exceeds the best by more than this are replaced (inf disables pruning)."""
     forgetting: float = 0.9
     """Per-frame forgetting factor of each hypothesis's accumulated evidence."""
     twin_nll: float = 10.0

@@ -98,6 +98,28 @@ def _cmd_ablate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rgb(text: str) -> tuple[int, int, int]:
+    try:
+        rgb = tuple(int(s) for s in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or any(not 0 <= c <= 255 for c in rgb):
+        raise argparse.ArgumentTypeError(f"expected R,G,B with integers 0..255, got {text!r}")
+    return rgb  # type: ignore[return-value]
+
+
+def _cmd_import_bop(args: argparse.Namespace) -> int:
+    from pinpoint_fg.io.bop import BopImportConfig, import_bop
+
+    config = BopImportConfig(
+        obj_id=args.obj_id, mask_dir=args.mask_dir, mask_color=args.mask_color, model_units=args.model_units,
+        instance=args.instance, fps=args.fps, tip_end=args.tip_end, grasp_angle_rad=args.grasp_angle_rad,
+        keypoints_sigma_px=args.keypoints_from_gt, seed=args.seed, images=not args.no_images, name=args.name,
+    )
+    print(import_bop(args.scene, args.model, args.out, config).describe())
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from pinpoint_fg.demo import run_demo
 
@@ -162,6 +184,29 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--jobs", type=int, default=2)
     s.add_argument("--frames", type=int, default=None, help="only the first N frames of each run")
     s.set_defaults(func=_cmd_ablate)
+
+    s = sub.add_parser("import-bop", help="convert a BOP-format scene of a needle into a recorded run")
+    s.add_argument("scene", type=Path, help="BOP scene directory (scene_camera.json, scene_gt.json, rgb/, mask_visib/)")
+    s.add_argument("--model", type=Path, required=True, help="the needle's PLY model (its circle is fitted)")
+    s.add_argument("--obj-id", type=int, required=True, help="BOP obj_id of the needle")
+    s.add_argument("--out", type=Path, required=True, help="run directory to create (new or empty)")
+    s.add_argument("--mask-dir", default="mask_visib", help="mask directory in the scene (default mask_visib)")
+    s.add_argument("--mask-color", type=_rgb, default=None, metavar="R,G,B",
+                   help="masks are colour labels ({im_id:06d}.png) and the needle has this colour")
+    s.add_argument("--model-units", choices=("mm", "m"), default="mm", help="unit of the PLY vertices (BOP: mm)")
+    s.add_argument("--instance", type=int, default=None, help="which entry of the object when an image has several")
+    s.add_argument("--fps", type=float, default=30.0, help="frame rate: t_s = im_id / fps (default 30)")
+    s.add_argument("--tip-end", choices=("+x", "-x", "+y", "-y", "+z", "-z"), default=None,
+                   help="the tip is the arc end with the larger model coordinate along this axis "
+                        "(needed when the mesh shows no tapered tip)")
+    s.add_argument("--grasp-angle-rad", type=float, default=None,
+                   help="grasp angle in the needle frame (default: a third of the arc from the tail)")
+    s.add_argument("--keypoints-from-gt", type=float, default=None, metavar="SIGMA_PX",
+                   help="SYNTHETIC keypoints: project tip/tail from the ground truth plus N(0, SIGMA_PX^2) noise")
+    s.add_argument("--seed", type=int, default=0, help="seed of the synthetic keypoint noise")
+    s.add_argument("--no-images", action="store_true", help="do not copy the images into the run")
+    s.add_argument("--name", default=None, help="run name (default: the scene directory's name)")
+    s.set_defaults(func=_cmd_import_bop)
 
     s = sub.add_parser("demo", help="simulate, track with svn/pf/map, evaluate, print the comparison")
     s.add_argument("--out", type=Path, default=Path("demo-output"))

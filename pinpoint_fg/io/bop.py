@@ -19,8 +19,9 @@ Decisions (the BOP format and the recording format are silent on them):
   1e-9 relative), without skew. BOP images are undistorted: distortion is zeros. The image size
   is the first frame's image (or its mask with ``images=False``); every file must match it.
 * **Ground truth**: the gt entry with ``obj_id`` of the frame; several entries with that id in
-  one image are an error unless ``instance`` picks the K-th (0-based, in file order). An image
-  without the object gets empty gt cells (and no mask). ``cam_R_m2c`` must be a rotation to
+  one image are an error unless ``instance`` picks the K-th (0-based, in file order; an image
+  with K or fewer entries of the object does not show instance K). An image without the object
+  (or the instance) gets empty gt cells (and no mask). ``cam_R_m2c`` must be a rotation to
   1e-3 (BOP stores ~7 significant digits) and is projected onto SO(3) by SVD;
   ``cam_t_m2c`` is in mm. ``cam_T_needle = cam_T_model @ model_T_needle`` with ``model_T_needle``
   fitted to the PLY model by :func:`pinpoint_fg.io.needle_mesh.fit_needle_mesh`.
@@ -37,7 +38,10 @@ Decisions (the BOP format and the recording format are silent on them):
   object, model, ``model_T_needle`` and the fit's figures, so the conversion can be retraced.
 
 Every malformed input raises :class:`InputError` naming the file and the JSON key path
-(``"12[0].cam_R_m2c"``: image 12, gt entry 0) or the PNG.
+(``"12[0].cam_R_m2c"``: image 12, gt entry 0) or the image file. The JSON files, the model and
+the existence of every image and mask file are checked before anything is written; an image or
+mask that exists but does not decode is found while writing, and leaves the frames before it
+(a valid, shorter run) in ``out``.
 """
 
 from __future__ import annotations
@@ -226,15 +230,13 @@ def _gt_entries(path: Path, obj_id: int, instance: int | None) -> dict[int, tupl
         if len(hits) > 1 and instance is None:
             raise InputError(f"{len(hits)} entries of obj_id {obj_id} in one image; choose one with --instance K",
                              file=path, column=key)
-        if hits:
-            k = 0 if instance is None else instance
-            if k >= len(hits):
-                raise InputError(f"--instance {k} asked, but the image has {len(hits)} entries of obj_id {obj_id}",
-                                 file=path, column=key)
+        k = 0 if instance is None else instance
+        if k < len(hits):  # an image with fewer entries does not show instance k
             out[im] = hits[k]
     if not out:
         ids = ", ".join(str(i) for i in sorted(seen_ids)) or "none"
-        raise InputError(f"no entry has obj_id {obj_id} (obj_ids present: {ids})", file=path)
+        which = f"obj_id {obj_id}" if instance is None else f"instance {instance} of obj_id {obj_id}"
+        raise InputError(f"no entry has {which} (obj_ids present: {ids})", file=path)
     return out
 
 
@@ -291,14 +293,14 @@ def _mask_reader(scene: Path, cfg: BopImportConfig) -> Callable[[int, int, tuple
 
 def _check_config(cfg: BopImportConfig) -> None:
     if not math.isfinite(cfg.fps) or cfg.fps <= 0:
-        raise InputError(f"fps must be > 0, got {cfg.fps}")
+        raise InputError(f"fps (--fps) must be > 0, got {cfg.fps}")
     if cfg.keypoints_sigma_px is not None and not (math.isfinite(cfg.keypoints_sigma_px)
                                                    and cfg.keypoints_sigma_px >= 0):
-        raise InputError(f"keypoint noise must be >= 0 px, got {cfg.keypoints_sigma_px}")
+        raise InputError(f"keypoint noise (--keypoints-from-gt) must be >= 0 px, got {cfg.keypoints_sigma_px}")
     if cfg.instance is not None and cfg.instance < 0:
-        raise InputError(f"instance must be >= 0, got {cfg.instance}")
+        raise InputError(f"instance (--instance) must be >= 0, got {cfg.instance}")
     if cfg.mask_color is not None and (len(cfg.mask_color) != 3 or any(not 0 <= c <= 255 for c in cfg.mask_color)):
-        raise InputError(f"mask colour must be three integers 0..255 (R,G,B), got {cfg.mask_color}")
+        raise InputError(f"mask colour (--mask-color) must be three integers 0..255 (R,G,B), got {cfg.mask_color}")
 
 
 def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
@@ -319,7 +321,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     try:
         needle = fit.needle_model(cfg.grasp_angle_rad)
     except ValueError as exc:
-        raise InputError(f"needle model: {exc}", file=model_path) from None
+        raise InputError(f"grasp angle (--grasp-angle-rad): {exc}") from None
     cams = _camera_entries(scene / SCENE_CAMERA)
     gts = _gt_entries(scene / SCENE_GT, cfg.obj_id, cfg.instance)
     orphans = sorted(set(gts) - set(cams))

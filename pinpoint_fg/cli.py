@@ -181,6 +181,41 @@ def _add_bag_parsers(sub: argparse._SubParsersAction) -> None:
     s.set_defaults(func=_cmd_export_bag)
 
 
+# --- batch -----------------------------------------------------------------------------------
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from pinpoint_fg.batch import run_batch
+
+    def done(run: Path, out: Path, error: str | None) -> None:
+        print(f"wrote {out}" if error is None else f"failed {run}", flush=True)
+
+    outcome = run_batch(
+        args.runs, args.method, args.out, scheduler=args.scheduler, workers=args.workers, on_done=done,
+        particles=args.particles, window=args.window, noise_file=args.noise, disable=args.disable, seed=args.seed,
+    )
+    for run, error in outcome.failures.items():
+        print(f"error: {run}: {error}" if str(run) not in error else f"error: {error}", file=sys.stderr)
+    print(f"{len(outcome.results)} of {len(outcome.out_dirs)} runs tracked into {args.out}")
+    return 2 if outcome.failures else 0
+
+
+def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser("batch", help="track many runs on a Dask cluster (local by default)")
+    s.add_argument("runs", type=Path, nargs="+")
+    s.add_argument("--method", choices=METHODS, default="svn")
+    s.add_argument("--out", type=Path, required=True, help="new or empty directory; one result per run inside")
+    s.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)")
+    s.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
+    s.add_argument("--particles", type=int, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
+    s.add_argument("--window", type=int, default=1, help="window length L (1 = filter)")
+    s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
+    s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=_cmd_batch)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     p = argparse.ArgumentParser(prog="pinpoint-fg", description=__doc__.splitlines()[0])
@@ -220,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("evaluate", help="metrics, tables and figures of tracking results")
-    s.add_argument("results", type=Path, nargs="+")
+    s.add_argument("results", type=Path, nargs="+", help="result directories, or a `batch` output directory")
     s.add_argument("--recording", type=Path, default=None)
     s.add_argument("--out", type=Path, required=True)
     s.set_defaults(func=_cmd_evaluate)
@@ -246,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_benchmark)
 
     _add_bag_parsers(sub)
+    _add_batch_parser(sub)
     return p
 
 

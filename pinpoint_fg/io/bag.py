@@ -681,6 +681,7 @@ def export_bag(
     stamps = list(_frame_stamps(recording, origin))  # validate every stamp before writing
     cam = recording.info.camera
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         with _BagWriter(out, fmt, storage) as w:
             for seq, (rec, ns) in enumerate(stamps):
                 h = w.header(ns, frame_id, seq)
@@ -697,6 +698,8 @@ def export_bag(
                         w.write(topic, w.pose(h, T_), ns)
     except InputError:
         raise
+    except OSError as exc:
+        raise InputError(f"cannot write the bag: {_one_line(exc)}", file=out) from None
     except Exception as exc:  # rosbags' writer errors (e.g. the path appeared meanwhile)
         if not type(exc).__module__.startswith("rosbags"):
             raise

@@ -285,6 +285,7 @@ def _read_bag(bag: Path, topics: BagTopics) -> tuple[dict[str, _TopicData], dict
                                      file=bag, column=topic)
             conns = [c for c in reader.connections if c.topic in wanted.values()]
             role_of = {topic: role for role, topic in wanted.items()}
+            # conns holds camera_info at least (checked above): an empty list would mean "every topic"
             for conn, _t, raw in reader.messages(connections=conns):
                 role = role_of[conn.topic]
                 msg = reader.deserialize(raw, conn.msgtype)

@@ -134,6 +134,110 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- ROS bags (import-bag, export-bag) -----------------------------------------------------
+
+BAG_ROLES = ("camera-info", "mask", "tip", "tail", "grasper", "gt")
+
+
+def _bag_topic(text: str) -> str | None:
+    return None if text.strip().lower() in ("", "none") else text.strip()
+
+
+def _bag_topics(args: argparse.Namespace):
+    from pinpoint_fg.io.bag import BagTopics
+
+    given = {r.replace("-", "_"): vars(args).get("topic_" + r.replace("-", "_"), "") for r in BAG_ROLES}
+    try:
+        return BagTopics(**{k: v for k, v in given.items() if v != ""})  # "" = option not given
+    except ValueError as exc:
+        raise InputError(str(exc), column="--topic-*") from None
+
+
+def _add_bag_topic_options(s: argparse.ArgumentParser) -> None:
+    from pinpoint_fg.io.bag import BagTopics
+
+    for role in BAG_ROLES:
+        default = getattr(BagTopics(), role.replace("-", "_"))
+        s.add_argument(f"--topic-{role}", type=_bag_topic, default=argparse.SUPPRESS, metavar="TOPIC",
+                       help=f"default {default}" + ("" if role == "camera-info" else "; 'none' skips it"))
+
+
+def _cmd_import_bag(args: argparse.Namespace) -> int:
+    from pinpoint_fg.io.bag import import_bag
+
+    summary = import_bag(args.bag, args.out, args.needle, topics=_bag_topics(args),
+                         stamp_tolerance_s=args.stamp_tolerance_s, name=args.name, frame_rate_hz=args.frame_rate_hz)
+    print(summary.describe())
+    return 0
+
+
+def _cmd_export_bag(args: argparse.Namespace) -> int:
+    from pinpoint_fg.io.bag import export_bag
+
+    out = export_bag(args.run, args.out, fmt=args.format, storage=args.storage, topics=_bag_topics(args))
+    print(f"wrote {out}")
+    return 0
+
+
+def _add_bag_parsers(sub: argparse._SubParsersAction) -> None:
+    from pinpoint_fg.io.bag import DEFAULT_STAMP_TOLERANCE_S
+
+    s = sub.add_parser("import-bag", help="convert a ROS 1/2 bag into a recorded run")
+    s.add_argument("bag", type=Path, help="a ROS 1 .bag file or a ROS 2 bag directory")
+    s.add_argument("--out", type=Path, required=True, help="the run directory to write (new or empty)")
+    s.add_argument("--needle", type=Path, required=True,
+                   help="NEEDLE.json: the 'needle' object of recording.json (a whole recording.json works too)")
+    s.add_argument("--stamp-tolerance-s", type=float, default=DEFAULT_STAMP_TOLERANCE_S,
+                   help="match messages to frames whose header stamps differ by at most this (0 = exact)")
+    s.add_argument("--name", default=None, help="run name (default: the bag's name)")
+    s.add_argument("--frame-rate-hz", type=float, default=None, help="default: from the camera_info stamps")
+    _add_bag_topic_options(s)
+    s.set_defaults(func=_cmd_import_bag)
+
+    s = sub.add_parser("export-bag", help="write a recorded run as a ROS 2 (default) or ROS 1 bag")
+    s.add_argument("run", type=Path)
+    s.add_argument("--out", type=Path, required=True, help="ROS 2: a new directory; ROS 1: a new FILE.bag")
+    s.add_argument("--format", choices=("ros2", "ros1"), default="ros2")
+    s.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="ROS 2 storage plugin")
+    _add_bag_topic_options(s)
+    s.set_defaults(func=_cmd_export_bag)
+
+
+# --- batch -----------------------------------------------------------------------------------
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from pinpoint_fg.batch import run_batch
+
+    def done(run: Path, out: Path, error: str | None) -> None:
+        print(f"wrote {out}" if error is None else f"failed {run}", flush=True)
+
+    outcome = run_batch(
+        args.runs, args.method, args.out, scheduler=args.scheduler, workers=args.workers, on_done=done,
+        particles=args.particles, window=args.window, noise_file=args.noise, disable=args.disable, seed=args.seed,
+    )
+    for run, error in outcome.failures.items():
+        print(f"error: {run}: {error}" if str(run) not in error else f"error: {error}", file=sys.stderr)
+    print(f"{len(outcome.results)} of {len(outcome.out_dirs)} runs tracked into {args.out}")
+    return 2 if outcome.failures else 0
+
+
+def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser("batch", help="track many runs on a Dask cluster (local by default)")
+    s.add_argument("runs", type=Path, nargs="+")
+    s.add_argument("--method", choices=METHODS, default="svn")
+    s.add_argument("--out", type=Path, required=True, help="new or empty directory; one result per run inside")
+    s.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)")
+    s.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
+    s.add_argument("--particles", type=int, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
+    s.add_argument("--window", type=int, default=1, help="window length L (1 = filter)")
+    s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
+    s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=_cmd_batch)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     p = argparse.ArgumentParser(prog="pinpoint-fg", description=__doc__.splitlines()[0])
@@ -173,7 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("evaluate", help="metrics, tables and figures of tracking results")
-    s.add_argument("results", type=Path, nargs="+")
+    s.add_argument("results", type=Path, nargs="+", help="result directories, or a `batch` output directory")
     s.add_argument("--recording", type=Path, default=None)
     s.add_argument("--out", type=Path, required=True)
     s.set_defaults(func=_cmd_evaluate)
@@ -220,6 +324,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")
     s.set_defaults(func=_cmd_benchmark)
+
+    _add_bag_parsers(sub)
+    _add_batch_parser(sub)
     return p
 
 

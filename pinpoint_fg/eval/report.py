@@ -46,7 +46,7 @@ from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, anal
 from pinpoint_fg.eval.bimodality import assess_bimodality, systematic_resample, tangent_at_map
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
 from pinpoint_fg.io.recording import Recording, read_recording
-from pinpoint_fg.io.result import Result, read_result
+from pinpoint_fg.io.result import Result, expand_result_dirs, read_result
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 
@@ -553,9 +553,12 @@ def evaluate_results(
 ) -> EvaluationReport:
     """Evaluate result directories (module docstring); returns everything computed.
 
-    ``ambiguity=False`` skips the ΔNLL labels (sensitivity / false-bimodal rates become NaN) but
-    still computes the accuracy floor. ``progress(message)`` is called at each stage when given.
+    A directory of results (``pinpoint-fg batch`` output) stands for its result sub-directories
+    (:func:`~pinpoint_fg.io.result.expand_result_dirs`). ``ambiguity=False`` skips the ΔNLL labels
+    (sensitivity / false-bimodal rates become NaN) but still computes the accuracy floor.
+    ``progress(message)`` is called at each stage when given.
     """
+    results = expand_result_dirs(results)
     if not results:
         raise InputError("no results to evaluate")
     out = Path(out)

@@ -51,6 +51,7 @@ import tempfile
 import time
 import zipfile
 import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -717,6 +718,30 @@ def _read_journal(path: Path, weighted: bool) -> ParticleHistory | None:
     rec = np.frombuffer(data, dtype=dt, count=count, offset=_JOURNAL_HEADER_BYTES)
     arrays = {k: np.array(rec[k]) for k in dt.names}
     return _check_particle_arrays(path, arrays, weighted)
+
+
+def expand_result_dirs(paths: Iterable[str | Path]) -> list[Path]:
+    """Result directories named by ``paths``: a result directory itself, or a directory of results.
+
+    A path holding ``result.json`` is a result. A directory without one whose immediate
+    sub-directories hold ``result.json`` (the output of ``pinpoint-fg batch``) stands for those
+    sub-directories, in name order. Anything else is passed through unchanged, so
+    :func:`read_result` reports it. Order is kept and duplicates are dropped.
+    """
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir() and not (p / RESULT_JSON).exists():
+            subs = sorted(d for d in p.iterdir() if d.is_dir() and (d / RESULT_JSON).is_file())
+            out.extend(subs or [p])
+        else:
+            out.append(p)
+    seen: set[Path] = set()
+    unique = []
+    for p in out:
+        if p.resolve() not in seen:
+            seen.add(p.resolve())
+            unique.append(p)
+    return unique
 
 
 def read_result(out_dir: str | Path) -> Result:

@@ -366,12 +366,12 @@ def _path_problem(cell: str) -> str | None:
     if too_long:
         return f"path {_shown(cell)} has a component of {len(too_long[0].encode())} bytes (at most 255 accepted)"
     if "\\" in cell:
-        return f"path {cell!r} contains a backslash; use '/' as the separator"
+        return f"path {_shown(cell)} contains a backslash; use '/' as the separator"
     win = PureWindowsPath(cell)
     if PurePosixPath(cell).is_absolute() or win.is_absolute() or win.drive:
-        return f"path {cell!r} is absolute; paths must be relative to the run directory"
+        return f"path {_shown(cell)} is absolute; paths must be relative to the run directory"
     if ".." in PurePosixPath(cell).parts:
-        return f"path {cell!r} contains '..'; paths must stay inside the run directory"
+        return f"path {_shown(cell)} contains '..'; paths must stay inside the run directory"
     return None
 
 
@@ -389,7 +389,7 @@ def _resolve_inside(root_resolved: Path, cell: str) -> tuple[Path | None, str | 
     try:
         target = (root_resolved / cell).resolve()
         if not target.is_relative_to(root_resolved):
-            return None, f"path {cell!r} resolves to {target}, outside the run directory (symlink)"
+            return None, f"path {_shown(cell)} resolves to {target}, outside the run directory (symlink)"
         if not target.is_file():
             return None, f"no such file: {root_resolved / cell}"
     except (OSError, ValueError, RuntimeError) as exc:  # ELOOP, ENAMETOOLONG, ... from the file system
@@ -460,7 +460,7 @@ class Recording:
                 root = self.root.resolve()
                 target = (root / rel).resolve()
                 if not target.is_relative_to(root):
-                    reason = f"path {rel!r} resolves to {target}, outside the run directory (symlink)"
+                    reason = f"path {_shown(rel)} resolves to {target}, outside the run directory (symlink)"
             except (OSError, ValueError, RuntimeError) as exc:
                 reason = f"path {_shown(rel)} cannot be used: {exc}"
         if reason is not None:
@@ -668,7 +668,7 @@ class _RowContext:
                 return None
             return x
         if _NONFINITE.fullmatch(cell):
-            self.err(f"NaN or infinite value {cell!r}; leave the cell empty when not observed", column)
+            self.err(f"NaN or infinite value {_shown(cell, 40)}; leave the cell empty when not observed", column)
         else:
             self.err(f"not a number: {_shown(cell, 40)}", column)
         return None
@@ -723,7 +723,7 @@ def _parse_frames(
                     for i, name in enumerate(header):
                         if name in col:
                             errors.append(
-                                InputError(f"header: duplicate column {name!r}", file=csv_path, column=name)
+                                InputError(f"header: duplicate column {_shown(name)}", file=csv_path, column=name)
                             )
                         else:
                             col[name] = i
@@ -855,7 +855,7 @@ def _parse_row(
             label = cell["occlusion"]
             if label not in OCCLUSION_LABELS:
                 allowed = ", ".join(OCCLUSION_LABELS)
-                ctx.err(f"unknown occlusion label {label!r}; expected one of {allowed}", gname)
+                ctx.err(f"unknown occlusion label {_shown(label, 40)}; expected one of {allowed}", gname)
             else:
                 values[gname] = label
     if frame is None or t_s is None:
@@ -1203,7 +1203,7 @@ def replace_ground_truth(run_dir: str | Path, gt_by_frame: dict[int, np.ndarray 
         cells = cells + [""] * (len(header) - n_cols)
         fcell = cells[idx["frame"]].strip()
         if not _INTEGER.fullmatch(fcell):
-            raise InputError(f"not a non-negative integer: {fcell!r}", file=csv_path, row=r, column="frame")
+            raise InputError(f"not a non-negative integer: {_shown(fcell, 40)}", file=csv_path, row=r, column="frame")
         frame = int(fcell)
         seen.add(frame)
         if frame in new_cells:

@@ -676,10 +676,12 @@ class _RowContext:
 
 def _parse_pose(ctx: _RowContext, cols: tuple[str, ...], values: list[float]) -> np.ndarray | None:
     q = np.asarray(values[3:7], dtype=float)
-    norm = float(np.linalg.norm(q))
+    # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
+    norm = float(np.sqrt(np.sum(np.square(np.clip(q, -2.0, 2.0)))))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
         ctx.err(
-            f"quaternion ({', '.join(cols[3:7])}) has norm {norm:.6g}; it must be 1 within {QUAT_NORM_TOL:g}",
+            f"quaternion ({', '.join(cols[3:7])}) has norm {norm:.6g}{'+' if norm >= 2 else ''}; "
+            f"it must be 1 within {QUAT_NORM_TOL:g}",
             cols[3],
         )
         return None

@@ -639,10 +639,12 @@ def _parse_frames_and_poses(
         for j, c in enumerate(POSE_COLUMNS):
             vals[r - 1, j] = _num(path, r, c, cells[idx[c]], allow_nan=False)
         q = vals[r - 1, 3:]
-        norm = float(np.linalg.norm(q))
+        # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
+        norm = float(np.sqrt(np.sum(np.square(np.clip(q, -2.0, 2.0)))))
         if abs(norm - 1.0) > QUAT_NORM_TOL:
             raise InputError(
-                f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}; it must be 1 within {QUAT_NORM_TOL:g} "
+                f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}{'+' if norm >= 2 else ''}; "
+                f"it must be 1 within {QUAT_NORM_TOL:g} "
                 f"(frame {frames[r - 1]})",
                 file=path, row=r, column="qw",
             )
@@ -684,7 +686,8 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
     ):
         if np.any(bad):
             raise InputError("contains NaN or infinite values", file=path, row=first_bad(bad), column=k)
-    norm = np.linalg.norm(arrays["quat_wxyz"], axis=-1)
+    # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
+    norm = np.sqrt(np.sum(np.square(np.clip(arrays["quat_wxyz"], -2.0, 2.0)), axis=-1))
     bad = np.abs(norm - 1.0) > QUAT_NORM_TOL
     if np.any(bad):
         raise InputError(f"quaternion norm far from 1 (tolerance {QUAT_NORM_TOL:g})", file=path,

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.track import METHODS, track_recording
 
@@ -98,12 +99,6 @@ def _track_task(run: str, out: str, method: str, options: dict[str, Any]) -> tup
     return "ok", out
 
 
-def _check_out_dir(out_dir: Path) -> None:
-    # TODO(integrator): replace with pinpoint_fg.io.outdir.prepare_output_dir(out_dir, overwrite, "batch output")
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise InputError("exists and is not an empty directory; choose a new output directory", file=out_dir)
-
-
 def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: int,
              options: dict[str, Any]) -> tuple[list[Path], dict[str, Any]]:
     """Validate everything that can be checked before a cluster starts; absolute paths for the workers."""
@@ -128,7 +123,7 @@ def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: in
         noise = Path(options["noise_file"]).absolute()
         NoiseConfig.load(noise)  # a bad noise file fails every run: say so once, before starting
         options["noise_file"] = str(noise)
-    _check_out_dir(out_dir)
+    prepare_output_dir(out_dir, bool(options.get("overwrite", False)), "batch output")
     return paths, options
 
 

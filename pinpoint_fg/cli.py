@@ -15,6 +15,7 @@ from pinpoint_fg.errors import InputError
 METHODS = ("svn", "svgd", "pf", "map")
 SWITCHES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
 SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration")
+OVERWRITE_HELP = "write into a non-empty --out (replacing what this command writes there)"
 
 
 def _disable_list(text: str) -> tuple[str, ...]:
@@ -33,14 +34,16 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         for e in errors:
             print(f"error: {e}", file=sys.stderr)
         print(f"{args.run}: INVALID ({len(errors)} error(s))", file=sys.stderr)
-        return 1
+        return 2
     print(summarize_recording(recording))
     return 0
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
+    from pinpoint_fg.io.outdir import prepare_output_dir
     from pinpoint_fg.sim.scenarios import simulate
 
+    prepare_output_dir(args.out, args.overwrite, "simulated run")
     out = simulate(args.scenario, n_frames=args.frames, seed=args.seed, out=args.out, images=args.images)
     print(f"wrote {out}")
     return 0
@@ -67,6 +70,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         disable=args.disable,
         seed=args.seed,
         progress=None,
+        overwrite=args.overwrite,
     )
     print(f"wrote {out}")
     return 0
@@ -74,7 +78,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from pinpoint_fg.eval.calibrate import calibrate_runs, format_table
+    from pinpoint_fg.io.outdir import prepare_output_file
 
+    prepare_output_file(args.out, args.overwrite, "noise file")
     noise = calibrate_runs(args.runs)
     noise.save(args.out)
     print(format_table(noise))
@@ -84,7 +90,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pinpoint_fg.eval.report import evaluate
+    from pinpoint_fg.io.outdir import prepare_output_dir
 
+    prepare_output_dir(args.out, args.overwrite, "evaluation")
     summary = evaluate(args.results, recording=args.recording, out=args.out)
     print(summary)
     return 0
@@ -93,7 +101,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_ablate(args: argparse.Namespace) -> int:
     from pinpoint_fg.eval.ablate import ablate
 
-    table = ablate(args.runs, out=args.out, jobs=args.jobs, frames=args.frames)
+    table = ablate(args.runs, out=args.out, jobs=args.jobs, frames=args.frames, overwrite=args.overwrite)
     print(table)
     return 0
 
@@ -116,21 +124,21 @@ def _cmd_import_bop(args: argparse.Namespace) -> int:
         instance=args.instance, fps=args.fps, tip_end=args.tip_end, grasp_angle_rad=args.grasp_angle_rad,
         keypoints_sigma_px=args.keypoints_from_gt, seed=args.seed, images=not args.no_images, name=args.name,
     )
-    print(import_bop(args.scene, args.model, args.out, config).describe())
+    print(import_bop(args.scene, args.model, args.out, config, overwrite=args.overwrite).describe())
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from pinpoint_fg.demo import run_demo
 
-    run_demo(out=args.out, frames=args.frames, jobs=args.jobs)
+    run_demo(out=args.out, frames=args.frames, jobs=args.jobs, overwrite=args.overwrite)
     return 0
 
 
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     from pinpoint_fg.demo import run_benchmark
 
-    run_benchmark(out=args.out, frames=args.frames, seed=args.seed, jobs=args.jobs)
+    run_benchmark(out=args.out, frames=args.frames, seed=args.seed, jobs=args.jobs, overwrite=args.overwrite)
     return 0
 
 
@@ -166,7 +174,8 @@ def _cmd_import_bag(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.bag import import_bag
 
     summary = import_bag(args.bag, args.out, args.needle, topics=_bag_topics(args),
-                         stamp_tolerance_s=args.stamp_tolerance_s, name=args.name, frame_rate_hz=args.frame_rate_hz)
+                         stamp_tolerance_s=args.stamp_tolerance_s, name=args.name, frame_rate_hz=args.frame_rate_hz,
+                         overwrite=args.overwrite)
     print(summary.describe())
     return 0
 
@@ -191,6 +200,7 @@ def _add_bag_parsers(sub: argparse._SubParsersAction) -> None:
                    help="match messages to frames whose header stamps differ by at most this (0 = exact)")
     s.add_argument("--name", default=None, help="run name (default: the bag's name)")
     s.add_argument("--frame-rate-hz", type=float, default=None, help="default: from the camera_info stamps")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     _add_bag_topic_options(s)
     s.set_defaults(func=_cmd_import_bag)
 
@@ -215,6 +225,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     outcome = run_batch(
         args.runs, args.method, args.out, scheduler=args.scheduler, workers=args.workers, on_done=done,
         particles=args.particles, window=args.window, noise_file=args.noise, disable=args.disable, seed=args.seed,
+        overwrite=args.overwrite,
     )
     for run, error in outcome.failures.items():
         print(f"error: {run}: {error}" if str(run) not in error else f"error: {error}", file=sys.stderr)
@@ -235,6 +246,7 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_batch)
 
 
@@ -252,6 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frames", type=int, default=300)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--images", action="store_true", help="also render camera images with the checkerboard")
     s.set_defaults(func=_cmd_simulate)
 
@@ -269,22 +282,26 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_track)
 
     s = sub.add_parser("calibrate", help="noise statistics of every residual at ground truth")
     s.add_argument("runs", type=Path, nargs="+")
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("evaluate", help="metrics, tables and figures of tracking results")
     s.add_argument("results", type=Path, nargs="+", help="result directories, or a `batch` output directory")
     s.add_argument("--recording", type=Path, default=None)
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_evaluate)
 
     s = sub.add_parser("ablate", help="the ablation matrix of the paper's Table III")
     s.add_argument("runs", type=Path, nargs="+")
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--jobs", type=int, default=2)
     s.add_argument("--frames", type=int, default=None, help="only the first N frames of each run")
     s.set_defaults(func=_cmd_ablate)
@@ -310,16 +327,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="seed of the synthetic keypoint noise")
     s.add_argument("--no-images", action="store_true", help="do not copy the images into the run")
     s.add_argument("--name", default=None, help="run name (default: the scene directory's name)")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_import_bop)
 
     s = sub.add_parser("demo", help="simulate, track with svn/pf/map, evaluate, print the comparison")
     s.add_argument("--out", type=Path, default=Path("demo-output"))
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--frames", type=int, default=240)
     s.add_argument("--jobs", type=int, default=2)
     s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser("benchmark", help="accuracy and latency of every method on every scenario")
     s.add_argument("--out", type=Path, default=Path("benchmark-output"))
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--frames", type=int, default=300)
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")

@@ -48,7 +48,8 @@ def _track(job: TrackJob) -> tuple[str, float]:
     from pinpoint_fg.track import track_recording
 
     t0 = time.perf_counter()
-    track_recording(job.run, job.method, job.out, seed=job.seed, progress=False)
+    # job.out lies under the demo's/benchmark's OUT, which run_demo/run_benchmark checked (overwrite or empty)
+    track_recording(job.run, job.method, job.out, seed=job.seed, progress=False, overwrite=True)
     return job.out, time.perf_counter() - t0
 
 
@@ -89,11 +90,16 @@ def _simulate(scenarios: tuple[str, ...], frames: int, seed: int, root: Path) ->
     return runs
 
 
-def run_demo(out: Path = Path("demo-output"), frames: int = 240, jobs: int = 2, seed: int = 1) -> Path:
-    """Simulate, track with svn/pf/map, evaluate, print the comparison; returns the report directory."""
-    from pinpoint_fg.eval.report import evaluate_results
+def run_demo(out: Path = Path("demo-output"), frames: int = 240, jobs: int = 2, seed: int = 1,
+             overwrite: bool = False) -> Path:
+    """Simulate, track with svn/pf/map, evaluate, print the comparison; returns the report directory.
 
-    out = Path(out)
+    ``out`` must be new or empty unless ``overwrite`` (:func:`pinpoint_fg.io.outdir.prepare_output_dir`).
+    """
+    from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.io.outdir import prepare_output_dir
+
+    out = prepare_output_dir(out, overwrite, "demo output")
     t0 = time.perf_counter()
     print(f"[demo] simulating {', '.join(DEMO_SCENARIOS)} ({frames} frames each, seed {seed}) -> {out / 'runs'}")
     runs = _simulate(DEMO_SCENARIOS, frames, seed, out)
@@ -111,15 +117,17 @@ def run_demo(out: Path = Path("demo-output"), frames: int = 240, jobs: int = 2, 
     return out / "report"
 
 
-def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed: int = 1, jobs: int = 1) -> Path:
+def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed: int = 1, jobs: int = 1,
+                  overwrite: bool = False) -> Path:
     """Every scenario x method on fixed seeds; prints accuracy, spread, bimodality, latency and latency ratios.
 
     Runs sequentially by default (``jobs=1``) so the per-frame latencies are not inflated by the
-    other runs sharing the cores.
+    other runs sharing the cores. ``out`` must be new or empty unless ``overwrite``.
     """
     from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.io.outdir import prepare_output_dir
 
-    out = Path(out)
+    out = prepare_output_dir(out, overwrite, "benchmark output")
     runs = _simulate(BENCH_SCENARIOS, frames, seed, out)
     jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m)) for sc in BENCH_SCENARIOS
                  for m in BENCH_METHODS]

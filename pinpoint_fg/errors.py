@@ -28,6 +28,9 @@ class InputError(ValueError):
         if row is not None:
             parts.append(f"row {row}")
         if column is not None:
-            parts.append(f"column {column!r}")
+            shown = repr(column)
+            if len(shown) > 80:  # a mangled header can hold a 4000-character name: keep the line readable
+                shown = f"{shown[:60]}...{shown[-12:]} ({len(column)} characters)"
+            parts.append(f"column {shown}")
         parts.append(message)
         super().__init__(": ".join(parts))

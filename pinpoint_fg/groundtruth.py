@@ -42,6 +42,7 @@ from factors.geometry import pose_from_xyz_quat
 from factors.lie import se3_inverse, so3_log
 from pinpoint_fg.checkerboard import DEFAULT_NEEDLE_T_BOARD, BoardSpec, detect_board
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.jsonfile import load_json
 
 BOARD_TO_NEEDLE_FORMAT = "pinpoint-board-to-needle"
 BOARD_TO_NEEDLE_VERSION = 1
@@ -103,16 +104,7 @@ def _number_array(doc: dict, key: str, shape: tuple[int, ...], file: Path) -> np
 def read_board_to_needle(path: str | Path) -> tuple[np.ndarray, BoardSpec]:
     """Read and validate a ``board_to_needle`` file -> (``board_T_needle`` (4, 4), :class:`BoardSpec`)."""
     file = Path(path)
-    try:
-        text = file.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("file not found (the board-to-needle transform)", file=file) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read: {exc}", file=file) from None
-    try:
-        doc: Any = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON: {exc.msg}", file=file, row=exc.lineno) from None
+    doc: Any = load_json(file, missing="file not found (the board-to-needle transform)")
     if not isinstance(doc, dict):
         raise InputError("must be a JSON object", file=file)
     if "format" in doc and doc["format"] != BOARD_TO_NEEDLE_FORMAT:

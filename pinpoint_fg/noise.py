@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.jsonfile import load_json
 
 #: Residual types and their dimensions.
 RESIDUAL_DIMS: dict[str, int] = {
@@ -163,12 +164,7 @@ class NoiseConfig:
     def load(cls, path: str | Path) -> NoiseConfig:
         """Read and validate a noise file; residual types it omits keep their defaults."""
         path = Path(path)
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError as exc:
-            raise InputError("file not found", file=path) from exc
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(f"not a readable JSON file ({exc})", file=path) from exc
+        doc = load_json(path)  # bounded nesting and integer size; InputError naming the file
         if not isinstance(doc, dict) or doc.get("format") != "pinpoint-noise":
             raise InputError('key "format" must be "pinpoint-noise"', file=path)
         if doc.get("version") != 1:

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.bimodality import assess_bimodality
+from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording import Recording, read_recording
 from pinpoint_fg.io.result import FrameEstimate, ResultWriter
 from pinpoint_fg.likelihood import Switches
@@ -96,11 +97,15 @@ def track_recording(
     progress: bool | None = None,
     max_frames: int | None = None,
     max_points: int = 200,
+    overwrite: bool = False,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
     ``progress`` None shows a bar only on a terminal. ``max_frames`` stops after that many frames.
+    ``out`` must be new or empty unless ``overwrite`` (:func:`pinpoint_fg.io.outdir.prepare_output_dir`);
+    it is checked before the recording is read, so a refused ``out`` costs nothing.
     """
+    out = prepare_output_dir(out, overwrite, "result")
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
     config = tracker_config(recording, method, particles, window, noise, disable, seed)
@@ -111,7 +116,6 @@ def track_recording(
     settings = tracker.settings()
     settings["noise_file"] = None if noise_file is None else str(noise_file)
     show = sys.stderr.isatty() if progress is None else bool(progress)
-    out = Path(out)
     with ResultWriter(out, method, settings, recording.info.name, str(Path(run).resolve()),
                       weighted=(method == "pf"), smoothed=config.window > 1) as writer:
         for rec in tqdm(frames, desc=f"{method} {recording.info.name}", unit="frame", disable=not show):

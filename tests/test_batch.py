@@ -86,8 +86,12 @@ def test_a_malformed_run_does_not_lose_the_others(runs: list[Path], scheduler: s
     assert list(err.results.values()) == [tmp_path / "out" / "run"]
     assert (tmp_path / "out" / "run" / "estimates.csv").exists()
     # a non-empty output directory is refused before anything runs
-    with pytest.raises(InputError, match="not an empty directory"):
+    with pytest.raises(InputError, match="--out is not empty"):
         run_batch(runs, "map", tmp_path / "out", scheduler=scheduler)
+    # ... unless the user asks for it: the results are replaced, the same as a fresh run
+    before = (tmp_path / "out" / "run" / "trajectory.tum").read_bytes()
+    again = run_batch([runs[0]], "map", tmp_path / "out", scheduler=scheduler, overwrite=True)
+    assert not again.failures and (tmp_path / "out" / "run" / "trajectory.tum").read_bytes() == before
 
 
 def test_bad_arguments_fail_before_a_cluster_starts(runs: list[Path], tmp_path: Path) -> None:

@@ -241,7 +241,7 @@ def test_skipping_a_topic_and_bad_files(tmp_path: Path) -> None:
     bag = _write_bag(tmp_path / "b", "ros2", build)
     s = import_bag(bag, tmp_path / "run", _needle(tmp_path), topics=BagTopics(grasper=None, mask=None))
     assert "grasper" not in s.matched and s.matched["tip"] == 1
-    with pytest.raises(InputError, match="not an empty directory"):
+    with pytest.raises(InputError, match="--out is not empty"):
         import_bag(bag, tmp_path / "run", _needle(tmp_path), topics=BagTopics(grasper=None))
     with pytest.raises(InputError, match="half the frame period"):
         import_bag(bag, tmp_path / "r2", _needle(tmp_path), topics=BagTopics(grasper=None), stamp_tolerance_s=0.02)

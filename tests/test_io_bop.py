@@ -240,7 +240,7 @@ def test_cube_model_and_existing_output_are_rejected(bop: dict, tmp_path: Path,
     assert len(err) == 1 and "cube.ply: not a needle mesh" in err[0]
     assert main([*base, "--model", str(bop["model"]), "--out", str(bop["run"])]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "exists and is not an empty directory" in err[0]
+    assert len(err) == 1 and "--out is not empty" in err[0]
     with pytest.raises(SystemExit) as exit_info:  # argparse's own one-line usage error
         main([*base, "--model", str(bop["model"]), "--out", str(tmp_path / "o2"), "--mask-color", "1,2"])
     assert exit_info.value.code == 2 and "expected R,G,B" in capsys.readouterr().err

@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.report import ABLATION_VARIANTS, evaluate_results
+from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording import read_recording
 
 
@@ -56,8 +57,9 @@ def _run_job(job: AblationJob) -> str:
     from pinpoint_fg.track import track_recording
 
     with threadpool_limits(1):
+        # job.out lies under the ablation's OUT, which ablate() checked (empty, new or --overwrite)
         track_recording(job.run, method=job.method, out=job.out, disable=job.disable, progress=False,
-                        max_frames=job.max_frames)
+                        max_frames=job.max_frames, overwrite=True)
     return job.out
 
 
@@ -126,14 +128,15 @@ def run_jobs(
     return sorted(done, key=lambda p: order[p]), failures
 
 
-def ablate(runs: list[Path], out: Path, jobs: int = 2, frames: int | None = None) -> str:
+def ablate(runs: list[Path], out: Path, jobs: int = 2, frames: int | None = None, overwrite: bool = False) -> str:
     """Track every run with every ablation variant, evaluate, and return Table III (markdown).
 
     Result directories go to ``out/<run name>/<variant>``; the evaluation (summary.csv,
-    tables.md with Table III, figures including the ablation bars) to ``out``.
+    tables.md with Table III, figures including the ablation bars) to ``out``, which must be new
+    or empty unless ``overwrite`` (:func:`pinpoint_fg.io.outdir.prepare_output_dir`).
     """
-    out = Path(out)
-    job_list = ablation_jobs(runs, out, frames)
+    job_list = ablation_jobs(runs, out, frames)  # reads every run first: bad input costs nothing
+    out = prepare_output_dir(out, overwrite, "ablation")
     done, failures = run_jobs(job_list, workers=int(jobs))
     report = evaluate_results([Path(p) for p in done], out=out)
     text = report.table_iii or report.table_ii

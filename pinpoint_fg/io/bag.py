@@ -86,6 +86,7 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
 from pinpoint_fg.io.recording import (
     QUAT_NORM_TOL,
     FrameRecord,
@@ -419,12 +420,6 @@ def _match(frame_ns: np.ndarray, stamps: list[int], tol_ns: int) -> tuple[np.nda
     return out, int(s.size - np.unique(out[out >= 0]).size)
 
 
-def _check_out_dir(out: Path) -> None:
-    # TODO(integrator): replace with pinpoint_fg.io.outdir.prepare_output_dir(out, overwrite, "run")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError("exists and is not an empty directory; choose a new output path", file=out)
-
-
 def import_bag(
     bag: str | Path,
     out: str | Path,
@@ -433,6 +428,7 @@ def import_bag(
     stamp_tolerance_s: float = DEFAULT_STAMP_TOLERANCE_S,
     name: str | None = None,
     frame_rate_hz: float | None = None,
+    overwrite: bool = False,
 ) -> BagImportSummary:
     """Convert a ROS 1/2 bag into the run directory ``out`` (module docstring for every rule).
 
@@ -444,7 +440,7 @@ def import_bag(
     if not math.isfinite(stamp_tolerance_s) or stamp_tolerance_s < 0:
         raise InputError(f"must be a finite number >= 0, got {stamp_tolerance_s}", column="--stamp-tolerance-s")
     needle_model = needle if isinstance(needle, NeedleModel) else read_needle_json(needle)
-    _check_out_dir(out)
+    check_output_dir(out, overwrite, "run")
     data, cam = _read_bag(bag, topics)
 
     ci = data["camera_info"]
@@ -515,6 +511,7 @@ def import_bag(
         return None if idx is None or idx[k] < 0 else data[role].values[idx[k]]
 
     n_pixels = cam["width"] * cam["height"]
+    prepare_output_dir(out, overwrite, "run")
     with RecordingWriter(out, info) as writer:
         for k, ns in enumerate(frame_ns):
             grasper, gt, mask = pick("grasper", k), pick("gt", k), pick("mask", k)

@@ -60,6 +60,7 @@ from factors.geometry import PinholeCamera
 from factors.lie import homogeneous
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
+from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
 from pinpoint_fg.io.recording import FrameRecord, RecordingInfo, RecordingWriter
 
 SCENE_CAMERA = "scene_camera.json"
@@ -304,19 +305,19 @@ def _check_config(cfg: BopImportConfig) -> None:
 
 
 def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
-               config: BopImportConfig) -> BopImportSummary:
+               config: BopImportConfig, overwrite: bool = False) -> BopImportSummary:
     """Convert one BOP scene of the needle ``config.obj_id`` into the run ``out`` (module docstring).
 
     Everything that can be checked before writing is checked first (JSON files, the model fit,
-    the existence of every image and mask file); ``out`` must not exist or be empty.
+    the existence of every image and mask file); ``out`` must not exist or be empty unless ``overwrite``
+    (:func:`pinpoint_fg.io.outdir.prepare_output_dir`, called once everything has been checked).
     """
     scene, model_path, out = Path(scene_dir), Path(model_path), Path(out)
     cfg = config
     _check_config(cfg)
     if not scene.is_dir():
         raise InputError("not a directory (the BOP scene)", file=scene)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError("exists and is not an empty directory; choose a new --out", file=out)
+    check_output_dir(out, overwrite, "run")
     fit = fit_needle_mesh(read_ply_vertices(model_path, cfg.model_units), tip_end=cfg.tip_end, source=model_path)
     try:
         needle = fit.needle_model(cfg.grasp_angle_rad)
@@ -364,6 +365,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
                          needle=needle, extra=extra)
     rng = np.random.default_rng(cfg.seed)
     n_gt = n_mask = n_kp = 0
+    prepare_output_dir(out, overwrite, "run")
     with RecordingWriter(out, info) as writer:
         for im in ids:
             gt = gts.get(im)

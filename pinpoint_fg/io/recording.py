@@ -24,15 +24,28 @@ Decisions the format leaves open (stated here so readers and writers agree):
 * Numeric cells are plain decimal numbers (``1``, ``-0.5``, ``1e-3``); ``nan``/``inf`` and
   anything else are rejected. ``frame`` is a non-negative integer, strictly increasing.
   ``t_s`` is not required to increase (only ``frame`` is, per the format).
+* Every number must also lie in a finite, physically possible range (a cell like ``1e300``
+  parses but would overflow the maths): pixel cells within :data:`PIXEL_RANGE_FACTOR` image
+  sizes of the image (``-10 W <= u <= 11 W``), metres within :data:`MAX_ABS_METRES` of the
+  camera, ``frame`` at most ``2**63 - 1`` (int64), ``|t_s| <=`` :data:`MAX_ABS_TIME_S`; in
+  recording.json ``width``/``height`` at most :data:`MAX_IMAGE_SIDE_PX`, ``fx``/``fy`` at most
+  :data:`MAX_FOCAL_PX`, ``cx``/``cy`` in the pixel range, ``|distortion| <=``
+  :data:`MAX_ABS_DISTORTION`, ``frame_rate_hz <=`` :data:`MAX_FRAME_RATE_HZ`, needle lengths at
+  most :data:`MAX_NEEDLE_M` and angles within ``±``:data:`MAX_ABS_ANGLE_RAD`. recording.json is
+  parsed by :func:`pinpoint_fg.io.jsonfile.loads_json` (bounded nesting, no huge integers).
 * A quaternion is accepted when ``| ||q|| - 1 | <= QUAT_NORM_TOL`` (1 %) and normalised;
   anything farther from unit length is a typo or a swapped column, not rounding.
-* Paths use ``/``, are relative, contain no ``..`` component and no backslash, and must
-  resolve (symlinks followed) inside the run directory.
+* Paths use ``/``, are relative, contain no ``..`` component, no backslash and no control
+  character (NUL included), are at most :data:`MAX_PATH_CHARS` characters with components of at
+  most 255 bytes, and must resolve (symlinks followed) inside the run directory.
 * Masks must be PNG (lossless: a JPEG's noise would become backbone pixels). Images may be
   any format OpenCV decodes. Both must be exactly ``camera.width x camera.height``. PNGs are
-  checked structurally at validation time (signature, IHDR size, every chunk's CRC, an IDAT,
-  an IEND) without decoding the pixels, which catches truncated and bit-flipped files; the
-  pixels are decoded by :meth:`Recording.load_mask` / :meth:`Recording.load_image`.
+  checked at validation time by :func:`check_png`: structure (signature, IHDR, every chunk's
+  CRC, an IDAT, an IEND) *and* the compressed data (the IDAT zlib stream is inflated in Python
+  and must be complete, of exactly the size the header implies, with valid row filter bytes),
+  which catches truncated, bit-flipped and corrupt-but-CRC-valid files before libpng sees them
+  (libpng would print its complaint to stderr). Every decode goes through
+  :func:`_decode_image`, which runs the same check before ``cv2.imdecode``.
 * Keypoints outside the image are not rejected (a detector's business, not the format's).
 """
 
@@ -56,6 +69,7 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.jsonfile import load_json
 
 FORMAT_NAME = "pinpoint-recording"
 FORMAT_VERSION = 1
@@ -78,6 +92,29 @@ OCCLUSION_LABELS = ("none", "partial", "heavy")
 
 #: Largest accepted deviation of a quaternion's norm from 1 (relative); within it, q is normalised.
 QUAT_NORM_TOL = 1e-2
+
+#: Pixel cells must lie in ``[-F * side, (F + 1) * side]`` for the image side (width for u, height for v).
+PIXEL_RANGE_FACTOR = 10
+#: Largest accepted |coordinate| of a position cell (``*_m``), metres.
+MAX_ABS_METRES = 10.0
+#: Largest accepted |t_s|, seconds (~317 years: Unix time stamps fit).
+MAX_ABS_TIME_S = 1e10
+#: Largest accepted frame index (int64).
+MAX_FRAME_INDEX = 2**63 - 1
+#: Largest accepted image width/height, pixels.
+MAX_IMAGE_SIDE_PX = 65535
+#: Largest accepted focal length, pixels.
+MAX_FOCAL_PX = 1e7
+#: Largest accepted |distortion coefficient|.
+MAX_ABS_DISTORTION = 1e6
+#: Largest accepted frame rate, Hz.
+MAX_FRAME_RATE_HZ = 1e6
+#: Largest accepted needle radius / wire diameter, metres.
+MAX_NEEDLE_M = 1.0
+#: Largest accepted |needle arc angle|, radians.
+MAX_ABS_ANGLE_RAD = 100.0
+#: Longest accepted mask/image path, characters.
+MAX_PATH_CHARS = 1024
 
 #: All frames.csv columns this version knows, in the order the writer emits them.
 KNOWN_COLUMNS: tuple[str, ...] = tuple(c for cols in COLUMN_GROUPS.values() for c in cols)
@@ -133,18 +170,103 @@ class FrameRecord:
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-def png_size(data: bytes) -> tuple[int, int]:
-    """``(width, height)`` of a structurally sound PNG held in ``data``.
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> samples per pixel
+_PNG_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+#: Adam7 passes: (x start, y start, x step, y step).
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+_INFLATE_PIECE = 1 << 20
 
-    Walks every chunk and checks its CRC-32, requires IHDR first, at least one IDAT and a
-    final IEND; raises ``ValueError`` with the reason otherwise. Pixels are not decoded.
+
+def _png_rows(width: int, height: int, bits_per_pixel: int, interlaced: bool) -> list[tuple[int, int]]:
+    """``(row count, bytes per row without the filter byte)`` of every (sub-)image of the scanline data."""
+    if not interlaced:
+        return [(height, (width * bits_per_pixel + 7) // 8)]
+    out = []
+    for x0, y0, dx, dy in _ADAM7:
+        w = (width - x0 + dx - 1) // dx if width > x0 else 0
+        h = (height - y0 + dy - 1) // dy if height > y0 else 0
+        if w and h:
+            out.append((h, (w * bits_per_pixel + 7) // 8))
+    return out
+
+
+def _check_png_data(idat: list[memoryview], rows: list[tuple[int, int]]) -> None:
+    """Inflate the IDAT zlib stream piece by piece; it must hold exactly ``rows`` with filter bytes 0..4."""
+    expected = sum(n * (1 + b) for n, b in rows)
+    # the position of every filter byte, as (start, stride, count) runs over the inflated stream
+    runs, pos = [], 0
+    for n, b in rows:
+        runs.append((pos, 1 + b, n))
+        pos += n * (1 + b)
+    d = zlib.decompressobj()
+    total = 0
+
+    def take(piece: bytes) -> None:
+        nonlocal total
+        if total + len(piece) > expected:
+            raise ValueError(f"corrupt PNG (image data longer than the {expected} bytes the header implies)")
+        arr = np.frombuffer(piece, dtype=np.uint8)
+        for start, stride, count in runs:
+            first = max(start, total)
+            if first > start:
+                first = start + -(-(first - start) // stride) * stride
+            last = min(start + stride * count, total + len(piece))
+            if first < last and np.any(arr[first - total : last - total : stride] > 4):
+                raise ValueError("corrupt PNG (invalid row filter type in the image data)")
+        total += len(piece)
+
+    try:
+        for i, chunk in enumerate(idat):
+            buf = bytes(chunk)
+            while buf and not d.eof:
+                take(d.decompress(buf, _INFLATE_PIECE))
+                buf = d.unconsumed_tail
+            if d.eof:
+                if d.unused_data or any(len(c) for c in idat[i + 1 :]):
+                    raise ValueError("corrupt PNG (data after the end of the compressed image stream)")
+                break
+        while not d.eof:
+            piece = d.decompress(b"", _INFLATE_PIECE)
+            if not piece:
+                break
+            take(piece)
+    except zlib.error as exc:
+        raise ValueError(f"corrupt PNG (compressed image data: {exc})") from None
+    if not d.eof:
+        raise ValueError("corrupt PNG (compressed image data ends early)")
+    if total != expected:
+        raise ValueError(f"corrupt PNG (image data has {total} bytes, the header implies {expected})")
+
+
+def check_png(data: bytes, size: tuple[int, int] | None = None) -> tuple[int, int]:
+    """``(width, height)`` of a sound PNG held in ``data``; ``ValueError(reason)`` otherwise.
+
+    Walks every chunk and checks its CRC-32, requires a valid IHDR first, at least one IDAT and
+    a final IEND; when ``size = (width, height)`` is given the header must match it (checked
+    before any inflating, so a huge declared image costs nothing); then inflates the IDAT zlib
+    stream in Python (in 1 MB pieces) and requires it to be complete, exactly as long as the
+    header implies, with every row's filter byte in 0..4. Pixels are not un-filtered.
     """
+    w, h, depth, colour, interlaced, idat = _png_chunks(data)
+    if size is not None and (w, h) != tuple(size):
+        raise ValueError(f"image is {w}x{h} px but the camera is {size[0]}x{size[1]} px (width x height)")
+    _check_png_data(idat, _png_rows(w, h, _PNG_CHANNELS[colour] * depth, interlaced))
+    return w, h
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    """``(width, height)`` of a sound PNG held in ``data`` (:func:`check_png` without a size)."""
+    return check_png(data)
+
+
+def _png_chunks(data: bytes) -> tuple[int, int, int, int, bool, list[memoryview]]:
+    """Structural walk: ``(width, height, bit depth, colour type, interlaced, IDAT payloads)``."""
     if not data.startswith(_PNG_SIGNATURE):
         raise ValueError("not a PNG file (bad signature)")
     view = memoryview(data)
     pos, n = len(_PNG_SIGNATURE), len(data)
     size: tuple[int, int] | None = None
-    seen_idat = False
+    idat: list[memoryview] = []
     while True:
         if pos + 12 > n:
             raise ValueError("truncated PNG (no IEND chunk)")
@@ -163,16 +285,21 @@ def png_size(data: bytes) -> tuple[int, int]:
                 int.from_bytes(view[pos + 8 : pos + 12], "big"),
                 int.from_bytes(view[pos + 12 : pos + 16], "big"),
             )
-            if size[0] == 0 or size[1] == 0:
-                raise ValueError("corrupt PNG (zero image size)")
+            if size[0] == 0 or size[1] == 0 or size[0] > 0x7FFFFFFF or size[1] > 0x7FFFFFFF:
+                raise ValueError("corrupt PNG (image size zero or beyond 2^31 - 1)")
+            depth, colour, compression, filtering, interlace = bytes(view[pos + 16 : pos + 21])
+            if colour not in _PNG_DEPTHS or depth not in _PNG_DEPTHS[colour]:
+                raise ValueError(f"corrupt PNG (bit depth {depth} with colour type {colour})")
+            if compression != 0 or filtering != 0 or interlace not in (0, 1):
+                raise ValueError("corrupt PNG (unknown compression, filter or interlace method)")
         elif ctype == "IDAT":
-            seen_idat = True
+            idat.append(view[pos + 8 : end - 4])
         elif ctype == "IEND":
             break
         pos = end
-    if not seen_idat:
+    if not idat:
         raise ValueError("corrupt PNG (no IDAT chunk)")
-    return size
+    return size[0], size[1], depth, colour, bool(interlace), idat
 
 
 def _image_file_problem(path: Path, width: int | None, height: int | None, png_only: bool) -> str | None:
@@ -183,7 +310,7 @@ def _image_file_problem(path: Path, width: int | None, height: int | None, png_o
         return f"cannot read {path}: {exc.strerror or exc}"
     if data.startswith(_PNG_SIGNATURE):
         try:
-            w, h = png_size(data)
+            w, h = check_png(data, None if width is None or height is None else (width, height))
         except ValueError as exc:
             return f"{path}: {exc}"
     elif png_only:
@@ -199,14 +326,17 @@ def _image_file_problem(path: Path, width: int | None, height: int | None, png_o
 
 
 def _decode_image(path: Path, width: int | None, height: int | None, png_only: bool) -> np.ndarray:
-    """Read and decode an image file; ``ValueError(reason)`` when unreadable, corrupt or mis-sized."""
+    """Read and decode an image file; ``ValueError(reason)`` when unreadable, corrupt or mis-sized.
+
+    The one place that hands image bytes to OpenCV: a PNG passes :func:`check_png` first.
+    """
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
     if data.startswith(_PNG_SIGNATURE):
         try:
-            png_size(data)
+            check_png(data, None if width is None or height is None else (width, height))
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
     elif png_only:
@@ -224,14 +354,31 @@ def _decode_image(path: Path, width: int | None, height: int | None, png_only: b
 
 def _path_problem(cell: str) -> str | None:
     """Why a mask/image cell is not an acceptable relative path (lexical checks only), or None."""
+    bad = [c for c in cell if ord(c) < 32 or ord(c) == 127]
+    if bad:
+        return f"path {_shown(cell)} contains a control character ({bad[0]!r}); paths must be plain text"
+    if len(cell) > MAX_PATH_CHARS:
+        return f"path {_shown(cell)} has {len(cell)} characters (at most {MAX_PATH_CHARS} accepted)"
+    try:
+        too_long = [p for p in cell.split("/") if len(p.encode("utf-8")) > 255]
+    except UnicodeEncodeError:
+        return f"path {_shown(cell)} is not valid Unicode text"
+    if too_long:
+        return f"path {_shown(cell)} has a component of {len(too_long[0].encode())} bytes (at most 255 accepted)"
     if "\\" in cell:
-        return f"path {cell!r} contains a backslash; use '/' as the separator"
+        return f"path {_shown(cell)} contains a backslash; use '/' as the separator"
     win = PureWindowsPath(cell)
     if PurePosixPath(cell).is_absolute() or win.is_absolute() or win.drive:
-        return f"path {cell!r} is absolute; paths must be relative to the run directory"
+        return f"path {_shown(cell)} is absolute; paths must be relative to the run directory"
     if ".." in PurePosixPath(cell).parts:
-        return f"path {cell!r} contains '..'; paths must stay inside the run directory"
+        return f"path {_shown(cell)} contains '..'; paths must stay inside the run directory"
     return None
+
+
+def _shown(cell: str, limit: int = 80) -> str:
+    """``repr`` of a cell, shortened to ``limit`` characters (a 4000-character path is not echoed whole)."""
+    text = repr(cell)
+    return text if len(text) <= limit else f"{text[: limit - 20]}...{text[-12:]} ({len(cell)} characters)"
 
 
 def _resolve_inside(root_resolved: Path, cell: str) -> tuple[Path | None, str | None]:
@@ -239,11 +386,15 @@ def _resolve_inside(root_resolved: Path, cell: str) -> tuple[Path | None, str | 
     reason = _path_problem(cell)
     if reason is not None:
         return None, reason
-    target = (root_resolved / cell).resolve()
-    if not target.is_relative_to(root_resolved):
-        return None, f"path {cell!r} resolves to {target}, outside the run directory (symlink)"
-    if not target.is_file():
-        return None, f"no such file: {root_resolved / cell}"
+    try:
+        target = (root_resolved / cell).resolve()
+        if not target.is_relative_to(root_resolved):
+            return None, f"path {_shown(cell)} resolves to {target}, outside the run directory (symlink)"
+        if not target.is_file():
+            return None, f"no such file: {root_resolved / cell}"
+    except (OSError, ValueError, RuntimeError) as exc:  # ELOOP, ENAMETOOLONG, ... from the file system
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        return None, f"path {_shown(cell)} cannot be used: {why}"
     return target, None
 
 
@@ -305,10 +456,13 @@ class Recording:
         where = f"(frame {rec.frame})"
         reason = _path_problem(rel)
         if reason is None:
-            root = self.root.resolve()
-            target = (root / rel).resolve()
-            if not target.is_relative_to(root):
-                reason = f"path {rel!r} resolves to {target}, outside the run directory (symlink)"
+            try:
+                root = self.root.resolve()
+                target = (root / rel).resolve()
+                if not target.is_relative_to(root):
+                    reason = f"path {_shown(rel)} resolves to {target}, outside the run directory (symlink)"
+            except (OSError, ValueError, RuntimeError) as exc:
+                reason = f"path {_shown(rel)} cannot be used: {exc}"
         if reason is not None:
             raise InputError(f"{reason} {where}", file=self.csv_path, row=row, column=column)
         cam = self.info.camera
@@ -360,6 +514,17 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
 
 
+def _json_shown(v: Any, limit: int = 60) -> str:
+    """A JSON value as text for an error message, shortened to ``limit`` characters."""
+    text = json.dumps(v)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _pixel_bounds(side_px: int) -> tuple[float, float]:
+    """Accepted range of a pixel coordinate along an image side of ``side_px`` pixels."""
+    return (-PIXEL_RANGE_FACTOR * side_px, (PIXEL_RANGE_FACTOR + 1) * side_px)
+
+
 def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | None:
     """Validate ``recording.json``; append every problem to ``errors``; the info when there were none."""
     n_before = len(errors)
@@ -368,17 +533,9 @@ def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | No
         errors.append(InputError(msg, file=json_path, column=key))
 
     try:
-        text = json_path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        err("file not found (a run needs recording.json)")
-        return None
-    except (OSError, UnicodeDecodeError) as exc:
-        err(f"cannot read: {exc}")
-        return None
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        err(f"not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}")
+        doc = load_json(json_path, missing="file not found (a run needs recording.json)")
+    except InputError as exc:
+        errors.append(exc)
         return None
     if not isinstance(doc, dict):
         err(f"the top level must be a JSON object, got {type(doc).__name__}")
@@ -390,18 +547,22 @@ def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | No
             return None
         return obj[key]
 
-    def number(obj: dict, key: str, path: str, positive: bool = False) -> float | None:
+    def number(obj: dict, key: str, path: str, positive: bool = False,
+               bounds: tuple[float, float] | None = None) -> float | None:
         v = get(obj, key, path)
         if v is None and key not in obj:
             return None
         if not _is_number(v):
-            err(f"must be a number, got {json.dumps(v)}", path)
+            err(f"must be a number, got {_json_shown(v)}", path)
             return None
         if not math.isfinite(v):
             err(f"must be finite, got {v}", path)
             return None
         if positive and v <= 0:
             err(f"must be > 0, got {v}", path)
+            return None
+        if bounds is not None and not bounds[0] <= v <= bounds[1]:
+            err(f"out of range: {v:g} (accepted {bounds[0]:g} .. {bounds[1]:g})", path)
             return None
         return float(v)
 
@@ -410,57 +571,61 @@ def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | No
         if v is None and key not in obj:
             return None
         if not isinstance(v, int) or isinstance(v, bool):
-            err(f"must be an integer, got {json.dumps(v)}", path)
+            err(f"must be an integer, got {_json_shown(v)}", path)
             return None
-        if v <= 0:
-            err(f"must be > 0, got {v}", path)
+        if v <= 0 or v > MAX_IMAGE_SIDE_PX:
+            err(f"must be in 1 .. {MAX_IMAGE_SIDE_PX}, got {v}", path)
             return None
         return v
 
     fmt = get(doc, "format", "format")
     if "format" in doc and fmt != FORMAT_NAME:
-        err(f"must be {FORMAT_NAME!r}, got {json.dumps(fmt)}", "format")
+        err(f"must be {FORMAT_NAME!r}, got {_json_shown(fmt)}", "format")
     version = get(doc, "version", "version")
     if "version" in doc:
         if not isinstance(version, int) or isinstance(version, bool):
-            err(f"must be the integer {FORMAT_VERSION}, got {json.dumps(version)}", "version")
+            err(f"must be the integer {FORMAT_VERSION}, got {_json_shown(version)}", "version")
         elif version != FORMAT_VERSION:
             err(f"unsupported version {version} (this reader knows version {FORMAT_VERSION})", "version")
     name = get(doc, "name", "name")
     if "name" in doc and (not isinstance(name, str) or not name.strip()):
-        err(f"must be a non-empty string, got {json.dumps(name)}", "name")
-    rate = number(doc, "frame_rate_hz", "frame_rate_hz", positive=True)
+        err(f"must be a non-empty string, got {_json_shown(name)}", "name")
+    rate = number(doc, "frame_rate_hz", "frame_rate_hz", positive=True, bounds=(0.0, MAX_FRAME_RATE_HZ))
 
     cam_vals: dict[str, Any] = {}
     cam = get(doc, "camera", "camera")
     if "camera" in doc and not isinstance(cam, dict):
-        err(f"must be a JSON object, got {json.dumps(cam)}", "camera")
+        err(f"must be a JSON object, got {_json_shown(cam)}", "camera")
     elif isinstance(cam, dict):
         cam_vals["width"] = positive_int(cam, "width", "camera.width")
         cam_vals["height"] = positive_int(cam, "height", "camera.height")
         for key in ("fx", "fy"):
-            cam_vals[key] = number(cam, key, f"camera.{key}", positive=True)
-        for key in ("cx", "cy"):
-            cam_vals[key] = number(cam, key, f"camera.{key}")
+            cam_vals[key] = number(cam, key, f"camera.{key}", positive=True, bounds=(0.0, MAX_FOCAL_PX))
+        for key, side in (("cx", "width"), ("cy", "height")):
+            n_px = cam_vals[side] if cam_vals[side] is not None else MAX_IMAGE_SIDE_PX
+            cam_vals[key] = number(cam, key, f"camera.{key}", bounds=_pixel_bounds(n_px))
         dist = get(cam, "distortion", "camera.distortion")
         if "distortion" in cam:
             if not isinstance(dist, list) or not all(_is_number(c) for c in dist):
-                err(f"must be a list of numbers, got {json.dumps(dist)}", "camera.distortion")
+                err(f"must be a list of numbers, got {_json_shown(dist)}", "camera.distortion")
             elif len(dist) not in (4, 5, 8, 12, 14):
                 err(f"must have 4, 5, 8, 12 or 14 OpenCV coefficients, got {len(dist)}", "camera.distortion")
             elif not all(math.isfinite(c) for c in dist):
                 err("contains NaN or infinite values", "camera.distortion")
+            elif not all(abs(c) <= MAX_ABS_DISTORTION for c in dist):
+                err(f"has a coefficient beyond ±{MAX_ABS_DISTORTION:g}", "camera.distortion")
             else:
                 cam_vals["distortion"] = tuple(float(c) for c in dist)
 
     needle_vals: dict[str, Any] = {}
     needle = get(doc, "needle", "needle")
     if "needle" in doc and not isinstance(needle, dict):
-        err(f"must be a JSON object, got {json.dumps(needle)}", "needle")
+        err(f"must be a JSON object, got {_json_shown(needle)}", "needle")
     elif isinstance(needle, dict):
         for key in _NEEDLE_KEYS:
             positive = key in ("radius_m", "wire_diameter_m")
-            needle_vals[key] = number(needle, key, f"needle.{key}", positive=positive)
+            bounds = (0.0, MAX_NEEDLE_M) if positive else (-MAX_ABS_ANGLE_RAD, MAX_ABS_ANGLE_RAD)
+            needle_vals[key] = number(needle, key, f"needle.{key}", positive=positive, bounds=bounds)
 
     if len(errors) > n_before:
         return None
@@ -492,22 +657,31 @@ class _RowContext:
         self.errors.append(InputError(f"{msg} ({where})", file=self.csv_path, row=self.row, column=column))
         self.failed = True
 
-    def number(self, cell: str, column: str) -> float | None:
+    def number(self, cell: str, column: str, bounds: tuple[float, float] | None = None) -> float | None:
         if _DECIMAL.fullmatch(cell):
-            return float(cell)
+            x = float(cell)
+            if not math.isfinite(x):
+                self.err(f"number {_shown(cell, 40)} overflows to infinity", column)
+                return None
+            if bounds is not None and not bounds[0] <= x <= bounds[1]:
+                self.err(f"out of range: {x:g} (accepted {bounds[0]:g} .. {bounds[1]:g})", column)
+                return None
+            return x
         if _NONFINITE.fullmatch(cell):
-            self.err(f"NaN or infinite value {cell!r}; leave the cell empty when not observed", column)
+            self.err(f"NaN or infinite value {_shown(cell, 40)}; leave the cell empty when not observed", column)
         else:
-            self.err(f"not a number: {cell!r}", column)
+            self.err(f"not a number: {_shown(cell, 40)}", column)
         return None
 
 
 def _parse_pose(ctx: _RowContext, cols: tuple[str, ...], values: list[float]) -> np.ndarray | None:
     q = np.asarray(values[3:7], dtype=float)
-    norm = float(np.linalg.norm(q))
+    # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
+    norm = float(np.sqrt(np.sum(np.square(np.clip(q, -2.0, 2.0)))))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
         ctx.err(
-            f"quaternion ({', '.join(cols[3:7])}) has norm {norm:.6g}; it must be 1 within {QUAT_NORM_TOL:g}",
+            f"quaternion ({', '.join(cols[3:7])}) has norm {norm:.6g}{'+' if norm >= 2 else ''}; "
+            f"it must be 1 within {QUAT_NORM_TOL:g}",
             cols[3],
         )
         return None
@@ -551,7 +725,7 @@ def _parse_frames(
                     for i, name in enumerate(header):
                         if name in col:
                             errors.append(
-                                InputError(f"header: duplicate column {name!r}", file=csv_path, column=name)
+                                InputError(f"header: duplicate column {_shown(name)}", file=csv_path, column=name)
                             )
                         else:
                             col[name] = i
@@ -598,6 +772,17 @@ def _parse_frames(
     return records
 
 
+def _cell_bounds(column: str, width: int | None, height: int | None) -> tuple[float, float] | None:
+    """Accepted range of a numeric frames.csv cell (None: checked otherwise, e.g. quaternion norm)."""
+    if column.endswith("_u_px"):
+        return _pixel_bounds(width if width is not None else MAX_IMAGE_SIDE_PX)
+    if column.endswith("_v_px"):
+        return _pixel_bounds(height if height is not None else MAX_IMAGE_SIDE_PX)
+    if column.endswith("_m"):
+        return (-MAX_ABS_METRES, MAX_ABS_METRES)
+    return None
+
+
 def _parse_row(
     ctx: _RowContext,
     cell: dict[str, str],
@@ -615,16 +800,19 @@ def _parse_row(
         if c == "":
             ctx.err("empty; every row needs a frame index", "frame")
         elif _INTEGER.fullmatch(c):
-            frame = int(c)
-            ctx.frame = frame
+            if len(c.lstrip("0")) > 19 or int(c) > MAX_FRAME_INDEX:
+                ctx.err(f"frame index {_shown(c, 40)} is beyond int64 (at most {MAX_FRAME_INDEX})", "frame")
+            else:
+                frame = int(c)
+                ctx.frame = frame
         else:
-            ctx.err(f"not a non-negative integer: {c!r}", "frame")
+            ctx.err(f"not a non-negative integer: {_shown(c, 40)}", "frame")
     if "t_s" in cell:
         c = cell["t_s"]
         if c == "":
             ctx.err("empty; every row needs a time stamp", "t_s")
         else:
-            t_s = ctx.number(c, "t_s")
+            t_s = ctx.number(c, "t_s", (-MAX_ABS_TIME_S, MAX_ABS_TIME_S))
 
     values: dict[str, Any] = {}
     for gname, gcols in groups.items():
@@ -642,7 +830,7 @@ def _parse_row(
             )
             continue
         if gname in ("tip", "tail", "kinematics", "ground_truth"):
-            nums = [ctx.number(cell[c], c) for c in gcols]
+            nums = [ctx.number(cell[c], c, _cell_bounds(c, width, height)) for c in gcols]
             if any(v is None for v in nums):
                 continue
             if gname in ("tip", "tail"):
@@ -669,7 +857,7 @@ def _parse_row(
             label = cell["occlusion"]
             if label not in OCCLUSION_LABELS:
                 allowed = ", ".join(OCCLUSION_LABELS)
-                ctx.err(f"unknown occlusion label {label!r}; expected one of {allowed}", gname)
+                ctx.err(f"unknown occlusion label {_shown(label, 40)}; expected one of {allowed}", gname)
             else:
                 values[gname] = label
     if frame is None or t_s is None:
@@ -695,7 +883,13 @@ def validate_run(path: str | Path) -> tuple[Recording | None, list[InputError]]:
     """
     root = Path(path)
     errors: list[InputError] = []
-    if not root.is_dir():
+    try:
+        is_dir = root.is_dir()
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        errors.append(InputError(f"cannot be used as a run directory: {why}", file=root))
+        return None, errors
+    if not is_dir:
         errors.append(InputError("not a directory (a run is a directory with recording.json and frames.csv)",
                                  file=root))
         return None, errors
@@ -1011,7 +1205,7 @@ def replace_ground_truth(run_dir: str | Path, gt_by_frame: dict[int, np.ndarray 
         cells = cells + [""] * (len(header) - n_cols)
         fcell = cells[idx["frame"]].strip()
         if not _INTEGER.fullmatch(fcell):
-            raise InputError(f"not a non-negative integer: {fcell!r}", file=csv_path, row=r, column="frame")
+            raise InputError(f"not a non-negative integer: {_shown(fcell, 40)}", file=csv_path, row=r, column="frame")
         frame = int(fcell)
         seen.add(frame)
         if frame in new_cells:

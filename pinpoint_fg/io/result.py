@@ -50,7 +50,6 @@ import re
 import tempfile
 import time
 import zipfile
-import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,7 +60,15 @@ import numpy as np
 import pinpoint_fg
 from factors.geometry import pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.recording import QUAT_NORM_TOL, _atomic_write_text, _check_pose
+from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.recording import (
+    MAX_FRAME_INDEX,
+    QUAT_NORM_TOL,
+    _atomic_write_text,
+    _check_pose,
+    _json_shown,
+    _shown,
+)
 
 RESULT_FORMAT = "pinpoint-result"
 RESULT_VERSION = 1
@@ -523,17 +530,13 @@ _NAN = re.compile(r"[+-]?nan", re.IGNORECASE)
 _INTEGER = re.compile(r"\d+")
 
 
+#: Largest accepted particle count N of a journal header (a corrupt header must not allocate terabytes).
+MAX_PARTICLES = 10_000_000
+
+
 def _read_info(root: Path) -> dict:
     path = root / RESULT_JSON
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("file not found (a result needs result.json)", file=path) from None
-    except json.JSONDecodeError as exc:
-        msg = f"not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}"
-        raise InputError(msg, file=path) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read: {exc}", file=path) from None
+    doc = load_json(path, missing="file not found (a result needs result.json)")
     if not isinstance(doc, dict):
         raise InputError("the top level must be a JSON object", file=path)
     types: dict[str, tuple[type, ...]] = {
@@ -547,9 +550,9 @@ def _read_info(root: Path) -> dict:
         v = doc[key]
         if not isinstance(v, allowed) or (bool not in allowed and isinstance(v, bool)):
             names = " or ".join("null" if t is type(None) else t.__name__ for t in allowed)
-            raise InputError(f"must be {names}, got {json.dumps(v)}", file=path, column=key)
+            raise InputError(f"must be {names}, got {_json_shown(v)}", file=path, column=key)
     if doc["format"] != RESULT_FORMAT:
-        raise InputError(f"must be {RESULT_FORMAT!r}, got {doc['format']!r}", file=path, column="format")
+        raise InputError(f"must be {RESULT_FORMAT!r}, got {_json_shown(doc['format'])}", file=path, column="format")
     if doc["version"] != RESULT_VERSION:
         raise InputError(
             f"unsupported version {doc['version']} (this reader knows {RESULT_VERSION})",
@@ -565,8 +568,10 @@ def _read_csv_rows(
     """Header and data rows (blank lines skipped). For an incomplete result a torn last line is dropped."""
     try:
         text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read: {exc}", file=path) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text: {exc.reason} at byte {exc.start}", file=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror or exc}", file=path) from None
     if not complete and text and not text.endswith("\n"):
         text = text[: text.rfind("\n") + 1]  # the writer was stopped mid-line: drop the partial row
     try:
@@ -591,12 +596,26 @@ def _read_csv_rows(
 
 
 def _num(path: Path, r: int, column: str, cell: str, allow_nan: bool) -> float:
+    """A numeric cell: finite (what the writer writes), or NaN/empty where ``allow_nan``."""
     if _DECIMAL.fullmatch(cell):
-        return float(cell)
+        x = float(cell)
+        if math.isfinite(x):
+            return x
+        raise InputError(f"number {_shown(cell)} overflows to infinity", file=path, row=r, column=column)
     if allow_nan and (_NAN.fullmatch(cell) or cell == ""):
         return math.nan
     what = "number" if allow_nan else "finite number"
-    raise InputError(f"not a {what}: {cell!r}", file=path, row=r, column=column)
+    raise InputError(f"not a {what}: {_shown(cell)}", file=path, row=r, column=column)
+
+
+def _int(path: Path, r: int, column: str, cell: str) -> int:
+    """A non-negative integer cell that fits int64 (frame indices, iterations)."""
+    if not _INTEGER.fullmatch(cell):
+        raise InputError(f"not a non-negative integer: {_shown(cell)}", file=path, row=r, column=column)
+    if len(cell.lstrip("0")) > 19 or int(cell) > MAX_FRAME_INDEX:
+        raise InputError(f"{_shown(cell)} is beyond int64 (at most {MAX_FRAME_INDEX})", file=path, row=r,
+                         column=column)
+    return int(cell)
 
 
 def _parse_frames_and_poses(
@@ -610,10 +629,7 @@ def _parse_frames_and_poses(
     vals = np.zeros((F, 7))
     prev: int | None = None
     for r, cells in enumerate(rows, start=1):
-        fc = cells[idx["frame"]]
-        if not _INTEGER.fullmatch(fc):
-            raise InputError(f"not a non-negative integer: {fc!r}", file=path, row=r, column="frame")
-        frames[r - 1] = int(fc)
+        frames[r - 1] = _int(path, r, "frame", cells[idx["frame"]])
         if prev is not None and frames[r - 1] <= prev:
             raise InputError(
                 f"frame {frames[r - 1]} is not greater than the previous row's frame {prev}",
@@ -624,10 +640,12 @@ def _parse_frames_and_poses(
         for j, c in enumerate(POSE_COLUMNS):
             vals[r - 1, j] = _num(path, r, c, cells[idx[c]], allow_nan=False)
         q = vals[r - 1, 3:]
-        norm = float(np.linalg.norm(q))
+        # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
+        norm = float(np.sqrt(np.sum(np.square(np.clip(q, -2.0, 2.0)))))
         if abs(norm - 1.0) > QUAT_NORM_TOL:
             raise InputError(
-                f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}; it must be 1 within {QUAT_NORM_TOL:g} "
+                f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}{'+' if norm >= 2 else ''}; "
+                f"it must be 1 within {QUAT_NORM_TOL:g} "
                 f"(frame {frames[r - 1]})",
                 file=path, row=r, column="qw",
             )
@@ -669,7 +687,8 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
     ):
         if np.any(bad):
             raise InputError("contains NaN or infinite values", file=path, row=first_bad(bad), column=k)
-    norm = np.linalg.norm(arrays["quat_wxyz"], axis=-1)
+    # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
+    norm = np.sqrt(np.sum(np.square(np.clip(arrays["quat_wxyz"], -2.0, 2.0)), axis=-1))
     bad = np.abs(norm - 1.0) > QUAT_NORM_TOL
     if np.any(bad):
         raise InputError(f"quaternion norm far from 1 (tolerance {QUAT_NORM_TOL:g})", file=path,
@@ -689,13 +708,41 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
                            log_posterior=np.asarray(arrays["log_posterior"], dtype=float), weight=weight)
 
 
+def _npz_declared_sizes_ok(path: Path) -> None:
+    """Refuse an npz whose members declare more array data than they hold, or object arrays.
+
+    ``np.load`` allocates the declared shape before reading, so a corrupt header would otherwise
+    allocate whatever it claims. Raises :class:`InputError`; zip/format errors are left to np.load.
+    """
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                else:
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+            if dtype.hasobject:
+                raise InputError(f"member {info.filename!r} holds Python objects, which "
+                                 "np.load(allow_pickle=False) refuses", file=path)
+            count = 1
+            for n in shape:
+                count *= int(n)
+            if count * dtype.itemsize > info.file_size:
+                raise InputError(f"member {info.filename!r} declares shape {shape} of {dtype}, more than its "
+                                 f"{info.file_size} bytes", file=path)
+
+
 def _read_npz(path: Path, weighted: bool) -> ParticleHistory:
     try:
+        _npz_declared_sizes_ok(path)
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any failure of the zip/npy parsers on these bytes is bad input
         raise InputError(
-            f"cannot load with np.load(allow_pickle=False): {type(exc).__name__}: {exc}", file=path
+            f"cannot load with np.load(allow_pickle=False): {type(exc).__name__}: {_shown(str(exc), 120)}", file=path
         ) from None
     return _check_particle_arrays(path, arrays, weighted)
 
@@ -709,8 +756,10 @@ def _read_journal(path: Path, weighted: bool) -> ParticleHistory | None:
         return None  # stopped before the first record
     if not data.startswith(_JOURNAL_MAGIC):
         raise InputError("not a pinpoint particle journal (bad magic)", file=path)
-    n, w_flag, _ = np.frombuffer(data, dtype="<i8", count=3, offset=len(_JOURNAL_MAGIC))
-    if n < 1 or bool(w_flag) != weighted:
+    n, w_flag, _ = (int(x) for x in np.frombuffer(data, dtype="<i8", count=3, offset=len(_JOURNAL_MAGIC)))
+    if not 1 <= n <= MAX_PARTICLES:
+        raise InputError(f"header says N={n}; a result has 1 .. {MAX_PARTICLES} particles", file=path)
+    if w_flag not in (0, 1) or bool(w_flag) != weighted:
         raise InputError(f"header says N={n}, weighted={bool(w_flag)}; result.json says weighted={weighted}",
                          file=path)
     dt = _journal_dtype(int(n), weighted)
@@ -751,7 +800,12 @@ def read_result(out_dir: str | Path) -> Result:
     written is returned (particles from the journal when it is ahead of particles.npz).
     """
     root = Path(out_dir)
-    if not root.is_dir():
+    try:
+        is_dir = root.is_dir()
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise InputError(f"cannot be used as a result directory: {why}", file=root) from None
+    if not is_dir:
         raise InputError("not a directory (a result is a directory with result.json)", file=root)
     info = _read_info(root)
     complete = info["complete"]
@@ -777,18 +831,17 @@ def read_result(out_dir: str | Path) -> Result:
         lat[r - 1] = _num(est_path, r, "latency_ms", cells[idx["latency_ms"]], allow_nan=True)
         b = cells[idx["bimodal"]]
         if b not in ("0", "1"):
-            raise InputError(f"must be 0 or 1, got {b!r}", file=est_path, row=r, column="bimodal")
+            raise InputError(f"must be 0 or 1, got {_shown(b)}", file=est_path, row=r, column="bimodal")
         bimodal[r - 1] = b == "1"
-        it = cells[idx["iterations"]]
-        if not _INTEGER.fullmatch(it):
-            raise InputError(f"not a non-negative integer: {it!r}", file=est_path, row=r, column="iterations")
-        iters[r - 1] = int(it)
+        iters[r - 1] = _int(est_path, r, "iterations", cells[idx["iterations"]])
     for c in header:
         if c in ESTIMATE_COLUMNS:
             continue
         cells = [row[idx[c]] for row in rows]
         if all(_DECIMAL.fullmatch(x) or _NAN.fullmatch(x) or x == "" for x in cells):
-            extra[c] = np.array([float(x) if x else math.nan for x in cells])
+            values = np.array([float(x) if x else math.nan for x in cells])
+            if not np.any(np.isinf(values)):  # the writer never writes inf: such a column is not ours
+                extra[c] = values
         # a non-numeric extra column is allowed and ignored
 
     smoothed = None

@@ -1,0 +1,84 @@
+"""Reading JSON files defensively: one function, :func:`load_json`, for every JSON input.
+
+Python's ``json`` recurses once per nesting level (a file of 100 000 ``[`` raises
+``RecursionError``) and turns any digit string into an ``int`` (a 5000-digit integer raises
+``ValueError`` from the int-size limit; one of 4000 digits overflows the first ``float()``).
+:func:`load_json` checks the nesting depth with a flat scan before parsing, refuses integer
+literals longer than :data:`MAX_INT_DIGITS` digits, and reports every problem, reading errors
+included, as one :class:`~pinpoint_fg.errors.InputError` naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+from pinpoint_fg.errors import InputError
+
+#: Deepest accepted nesting of arrays/objects (the project's files use 3).
+MAX_JSON_DEPTH = 64
+#: Longest accepted integer literal, digits: int64's 19 (a ROS time stamp in ns has 19); a literal of
+#: 19 digits must still fit in int64.
+MAX_INT_DIGITS = 19
+_INT64_MAX = 2**63 - 1
+
+_TOKENS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]', re.DOTALL)
+
+
+def json_depth(text: str) -> int:
+    """Largest nesting depth of ``[``/``{`` in ``text`` (brackets inside strings ignored), without recursion."""
+    depth = deepest = 0
+    for m in _TOKENS.finditer(text):
+        tok = m.group()
+        if tok in ("[", "{"):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif tok in ("]", "}"):
+            depth -= 1
+    return deepest
+
+
+class _IntTooLong(ValueError):
+    pass
+
+
+def _parse_int(text: str) -> int:
+    digits = len(text.lstrip("-"))
+    if digits > MAX_INT_DIGITS:
+        raise _IntTooLong(f"integer literal with {digits} digits (at most {MAX_INT_DIGITS} accepted)")
+    value = int(text)
+    if not -_INT64_MAX - 1 <= value <= _INT64_MAX:
+        raise _IntTooLong(f"integer literal {text} does not fit in int64")
+    return value
+
+
+def loads_json(text: str, file: str | Path) -> Any:
+    """Parse ``text`` (the contents of ``file``) within the limits above; :class:`InputError` otherwise."""
+    depth = json_depth(text)
+    if depth > MAX_JSON_DEPTH:
+        raise InputError(f"JSON nested {depth} levels deep (at most {MAX_JSON_DEPTH} accepted)", file=file)
+    try:
+        return json.loads(text, parse_int=_parse_int)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}", file=file) from None
+    except _IntTooLong as exc:
+        raise InputError(str(exc), file=file) from None
+    except (ValueError, RecursionError) as exc:  # belt and braces: no parser error escapes as a traceback
+        raise InputError(f"not valid JSON: {exc}", file=file) from None
+
+
+def load_json(path: str | Path, missing: str = "file not found") -> Any:
+    """Read and parse the JSON file ``path``; :class:`InputError` (``missing`` when it does not exist)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(missing, file=path) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text: {exc.reason} at byte {exc.start}", file=path) from None
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise InputError(f"cannot read: {why}", file=path) from None
+    return loads_json(text, path)

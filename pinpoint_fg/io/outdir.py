@@ -1,0 +1,136 @@
+"""Output directories and files: the one place that decides whether ``--out`` may be written.
+
+Rules (every subcommand that writes goes through :func:`prepare_output_dir` or
+:func:`prepare_output_file`, so a user's results are never replaced silently):
+
+* ``--out`` naming an existing **file** (for a directory output), or a path **under** a file,
+  is refused;
+* an existing **non-empty** directory is refused unless ``overwrite`` is true; then the command
+  replaces the files it writes and leaves every other file in the directory alone (nothing is
+  deleted wholesale: ``--out ~ --overwrite`` must not be able to empty a home directory);
+* an output file that already exists is refused unless ``overwrite``; a directory in its place is
+  always refused;
+* a path the operating system cannot use (a NUL byte, a component longer than the file system
+  allows, no permission) is refused.
+
+Every refusal is an :class:`~pinpoint_fg.errors.InputError` naming the path (one line, exit code 2
+on the command line). The directory is created (with its parents) when the checks pass.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pinpoint_fg.errors import InputError
+
+_SHOWN_ENTRIES = 3
+
+
+def _short(path: str | os.PathLike) -> str:
+    """The path as text with control characters escaped (a NUL must not cut the message)."""
+    text = os.fspath(path)
+    text = text if isinstance(text, str) else text.decode("utf-8", "backslashreplace")
+    return text.encode("unicode_escape").decode("ascii") if any(ord(c) < 32 for c in text) else text
+
+
+def _usable(path: str | os.PathLike, what: str) -> Path:
+    """``Path(path)`` after the checks that need no file system access (type, NUL byte)."""
+    if isinstance(path, bytes):
+        path = path.decode("utf-8", "surrogateescape")
+    if not isinstance(path, str | os.PathLike):
+        raise InputError(f"--out must be a path for the {what}, got {type(path).__name__}")
+    text = os.fspath(path)
+    if text == "":
+        raise InputError(f"--out is empty; name a path for the {what}")
+    if "\x00" in text:
+        raise InputError("--out contains a NUL byte, which no path can hold", file=_short(text))
+    return Path(text)
+
+
+def _file_ancestor(p: Path) -> Path | None:
+    """The nearest existing ancestor of ``p`` when it is not a directory (so ``p`` cannot be created)."""
+    for parent in p.absolute().parents:
+        try:
+            if parent.exists():
+                return None if parent.is_dir() else parent
+        except OSError:
+            return None
+    return None
+
+
+def _os_problem(exc: OSError) -> str:
+    return exc.strerror or type(exc).__name__
+
+
+def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str) -> Path:
+    """The checks of :func:`prepare_output_dir` without creating anything (for commands that read and
+    validate all their input first and must leave nothing behind when it is bad)."""
+    p = _usable(path, what)
+    try:
+        if p.exists() or p.is_symlink():
+            if not p.is_dir():
+                raise InputError(f"--out exists and is a file, not a directory; choose another --out for the {what}",
+                                 file=p)
+            entries = sorted(e.name for e in os.scandir(p))
+            if entries and not overwrite:
+                shown = ", ".join(entries[:_SHOWN_ENTRIES]) + (", ..." if len(entries) > _SHOWN_ENTRIES else "")
+                raise InputError(
+                    f"--out is not empty ({len(entries)} entries: {shown}); pass --overwrite to replace the {what} "
+                    "in it, or choose another --out",
+                    file=p,
+                )
+            return p
+        blocker = _file_ancestor(p)
+        if blocker is not None:
+            raise InputError(f"--out cannot be created: {blocker} is a file, not a directory", file=p)
+    except InputError:
+        raise
+    except OSError as exc:
+        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(p)) from None
+    return p
+
+
+def prepare_output_dir(path: str | os.PathLike, overwrite: bool, what: str) -> Path:
+    """Check that ``path`` may receive the output ``what`` (e.g. ``"result"``), create it, return it.
+
+    Raises :class:`InputError` (module docstring) for a file in the way, a path under a file, a
+    non-empty directory without ``overwrite``, or a path the OS refuses.
+    """
+    p = check_output_dir(path, overwrite, what)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(p)) from None
+    return p
+
+
+def prepare_output_file(path: str | os.PathLike, overwrite: bool, what: str) -> Path:
+    """Check that the file ``path`` may receive ``what``; create its parent directory; return it.
+
+    Refuses an existing file without ``overwrite``, a directory in its place, a parent that is a
+    file, and paths the OS refuses (:class:`InputError`). The file itself is not created.
+    """
+    p = _usable(path, what)
+    try:
+        if p.is_dir():
+            raise InputError(f"--out is a directory; name a file for the {what}", file=p)
+        if p.exists() or p.is_symlink():
+            if not overwrite:
+                raise InputError(f"--out exists; pass --overwrite to replace the {what}, or choose another --out",
+                                 file=p)
+            return p
+        blocker = _file_ancestor(p)
+        if blocker is not None:
+            raise InputError(f"--out cannot be created: {blocker} is a file, not a directory", file=p)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        # the file name itself must be acceptable too (length limits): probe without creating it
+        os.stat(p.parent)
+        if len(os.fsencode(p.name)) > os.pathconf(p.parent, "PC_NAME_MAX"):
+            raise OSError(36, "File name too long")
+    except InputError:
+        raise
+    except (OSError, ValueError) as exc:
+        why = _os_problem(exc) if isinstance(exc, OSError) else str(exc)
+        raise InputError(f"--out cannot be used for the {what}: {why}", file=_short(p)) from None
+    return p

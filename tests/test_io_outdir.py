@@ -1,0 +1,123 @@
+"""The one output check: --out never silently replaces a user's results; bad --out is one line, exit 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pinpoint_fg.cli import main
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.outdir import prepare_output_dir, prepare_output_file
+
+
+def test_new_and_empty_directories_are_accepted(tmp_path: Path) -> None:
+    assert prepare_output_dir(tmp_path / "a" / "b", False, "result") == tmp_path / "a" / "b"
+    assert (tmp_path / "a" / "b").is_dir()
+    assert prepare_output_dir(tmp_path / "a" / "b", False, "result") == tmp_path / "a" / "b"  # still empty
+
+
+def test_non_empty_directory_needs_overwrite(tmp_path: Path) -> None:
+    (tmp_path / "old.csv").write_text("my results")
+    with pytest.raises(InputError, match="--overwrite") as info:
+        prepare_output_dir(tmp_path, False, "result")
+    assert info.value.file == str(tmp_path) and "old.csv" in str(info.value)
+    assert prepare_output_dir(tmp_path, True, "result") == tmp_path
+    assert (tmp_path / "old.csv").read_text() == "my results"  # nothing is deleted wholesale
+
+
+@pytest.mark.parametrize("sub", ["", "x", "x/y"])
+def test_a_file_in_the_way_is_refused(tmp_path: Path, sub: str) -> None:
+    f = tmp_path / "file"
+    f.write_text("data")
+    target = f / sub if sub else f
+    for overwrite in (False, True):
+        with pytest.raises(InputError, match="file"):
+            prepare_output_dir(target, overwrite, "result")
+    assert f.read_text() == "data"
+
+
+@pytest.mark.parametrize("name", ["a" * 300, "a\x00b"])
+def test_paths_the_os_refuses_are_input_errors(tmp_path: Path, name: str) -> None:
+    with pytest.raises(InputError) as info:
+        prepare_output_dir(tmp_path / name, False, "result")
+    assert "\n" not in str(info.value) and "\x00" not in str(info.value)
+    with pytest.raises(InputError):
+        prepare_output_file(tmp_path / name, False, "noise file")
+
+
+def test_output_file_rules(tmp_path: Path) -> None:
+    f = tmp_path / "sub" / "noise.json"
+    assert prepare_output_file(f, False, "noise file") == f and f.parent.is_dir() and not f.exists()
+    f.write_text("{}")
+    with pytest.raises(InputError, match="--overwrite"):
+        prepare_output_file(f, False, "noise file")
+    assert prepare_output_file(f, True, "noise file") == f
+    with pytest.raises(InputError, match="directory"):
+        prepare_output_file(tmp_path, True, "noise file")
+    with pytest.raises(InputError, match="is a file"):
+        prepare_output_file(f / "x.json", True, "noise file")
+
+
+@pytest.fixture(scope="module")
+def run12(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = tmp_path_factory.mktemp("outdir") / "run"
+    assert main(["simulate", "--scenario", "slow", "--frames", "4", "--seed", "3", "--out", str(run)]) == 0
+    return run
+
+
+def _one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+def test_cli_track_refuses_to_replace_a_result(run12: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "res"
+    assert main(["track", str(run12), "--method", "map", "--out", str(out)]) == 0
+    before = (out / "estimates.csv").read_bytes()
+    capsys.readouterr()
+    assert main(["track", str(run12), "--method", "map", "--out", str(out)]) == 2
+    assert "--overwrite" in _one_error_line(capsys)
+    assert (out / "estimates.csv").read_bytes() == before
+    assert main(["track", str(run12), "--method", "map", "--out", str(out), "--overwrite"]) == 0
+
+
+def test_cli_out_naming_a_file_or_a_path_under_one(run12: Path, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    f = tmp_path / "f.txt"
+    f.write_text("keep")
+    for out in (f, f / "res"):
+        for cmd in (["track", str(run12), "--method", "map"], ["simulate", "--frames", "2"],
+                    ["evaluate", str(tmp_path)], ["demo", "--frames", "2"], ["ablate", str(run12)]):
+            capsys.readouterr()
+            assert main([*cmd, "--out", str(out)]) == 2, cmd
+            assert str(f) in _one_error_line(capsys)
+    assert f.read_text() == "keep"
+
+
+def test_cli_simulate_and_calibrate_refuse_without_overwrite(run12: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    capsys.readouterr()
+    assert main(["simulate", "--frames", "2", "--out", str(run12)]) == 2
+    _one_error_line(capsys)
+    noise = tmp_path / "noise.json"
+    noise.write_text("{}")
+    assert main(["calibrate", str(run12), "--out", str(noise)]) == 2
+    _one_error_line(capsys)
+    assert noise.read_text() == "{}"
+
+
+def test_validate_exits_2_on_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "recording.json").write_text("[" * 100000)
+    (bad / "frames.csv").write_text("frame,t_s\n0,1e400\n")
+    assert main(["validate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "nested" in err and "t_s" in err
+    assert main(["validate", str(tmp_path / ("x" * 300))]) == 2
+    assert "Traceback" not in capsys.readouterr().err

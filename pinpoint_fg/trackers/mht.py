@@ -32,14 +32,18 @@ part (which branches live, their weights) is ~50 lines below.
 2. *Propose.* For each branch, :func:`pinpoint_fg.proposals.mode_proposals` (twin from the mode's
    ellipse and from the frame's fitted ellipse, the three arc flips of each). A proposal ``p``
    inherits its parent's window prior *transformed rigidly*: mean ``G mu_b`` with
-   ``G = p x*^-1`` and covariance ``P_b`` — the parent's history moved onto the proposal, so
-   parent and proposal pay the same prior cost for the same motion and only the frame decides.
+   ``G = p' x*^-1`` (``p'`` the proposal polished on the frame) and covariance ``P_b`` — the
+   parent's history moved onto the proposal, so parent and proposal pay the same prior cost for
+   the same motion and only the frame decides.
    The frame's ellipse is the same for every branch; its poses are proposed once per frame,
    with the best branch as their parent.
    (Copying the parent's factor graph under ``G`` is not possible — the factors are
    measurements — so the new branch is a new smoother holding this prior and the frame.)
-3. *Screen and admit.* Every proposal is polished on its window (frame + transformed prior,
-   batched Gauss-Newton, :func:`pinpoint_fg.proposals.polish_with_prior`) and scored with its
+3. *Screen and admit.* Every proposal is first polished on the frame alone, so that ``G`` carries
+   the parent's posterior onto the proposal's (a raw proposal from the frame's ellipse can be
+   millimetres off, and a prior centred there would hold it off), then polished on its window
+   (frame + transformed prior, batched Gauss-Newton,
+   :func:`pinpoint_fg.proposals.polish_with_prior`) and scored with its
    parent's previous log-weight plus its Laplace increment. Proposals within
    :attr:`MhtConfig.admit_nats` of the best branch that are not duplicates (within
    :attr:`MhtConfig.separation` of a better branch) compete with the branches for the ``K``
@@ -107,8 +111,8 @@ class MhtConfig:
     """A branch is dropped when its log-weight falls this far behind the best (1 : e^20)."""
     separation: tuple[float, float] = DEFAULT_SEPARATION
     """Two branches closer than (rotation rad, centre m) are one mode and are merged."""
-    polish_iters: int = 8
-    """Batched Gauss-Newton steps that polish each proposal on its window before screening."""
+    polish_iters: int = 6
+    """Batched Gauss-Newton steps that polish each proposal on the frame, and again on its window."""
     frame_ellipse: bool = True
     """Also propose both circles of the frame's fitted ellipse (and their flips)."""
     map: MapConfig = field(default_factory=MapConfig)
@@ -244,6 +248,9 @@ class MhtTracker(Tracker):
             if P.shape[0] == 0:
                 continue
             n_prop += P.shape[0]
+            # polish on the frame alone, then carry the parent's window prior onto the polished pose and
+            # polish on the window (frame + that prior): the proposal inherits its parent's prior cost
+            P, _, _ = polish_with_prior(lik, P, iters=self.mht.polish_iters)
             means = rigid_map(T_b, P) @ b.prior_mean
             info = np.linalg.inv(b.prior_cov)
             Tp, E, H = polish_with_prior(lik, P, means, info, self.mht.polish_iters)

@@ -29,14 +29,16 @@ part (which branches live, their weights) is ~50 lines below.
    that information is exactly ``frame + window prior``; with ``L > 1`` the smoother also
    re-weighs older frames and the increment is an approximation (documented, not hidden).
    The branch's log-weight accumulates the increments.
-2. *Propose.* For each branch, :func:`pinpoint_fg.proposals.mode_proposals` (twin from the mode's
-   ellipse and from the frame's fitted ellipse, the three arc flips of each). A proposal ``p``
+2. *Propose* (only on frames with backbone pixels: every proposal keeps the ellipse, which is
+   what makes it an ambiguity; without a backbone a flipped arc is simply a worse fit and the
+   broad posterior of tip/tail/kinematics-only frames would be cut into spurious "modes").
+   For each branch, :func:`pinpoint_fg.proposals.mode_proposals` (twin from the mode's ellipse
+   and from the frame's fitted ellipse, the three arc flips of each). A proposal ``p``
    inherits its parent's window prior *transformed rigidly*: mean ``G mu_b`` with
    ``G = p' x*^-1`` (``p'`` the proposal polished on the frame) and covariance ``P_b`` — the
-   parent's history moved onto the proposal, so parent and proposal pay the same prior cost for
-   the same motion and only the frame decides.
-   The frame's ellipse is the same for every branch; its poses are proposed once per frame,
-   with the best branch as their parent.
+   parent's history moved onto the proposal, so parent and proposal pay the same prior cost
+   for the same motion and only the frame decides. The frame's ellipse is the same for every
+   branch; its poses are proposed once per frame, with the best branch as their parent.
    (Copying the parent's factor graph under ``G`` is not possible — the factors are
    measurements — so the new branch is a new smoother holding this prior and the frame.)
 3. *Screen and admit.* Every proposal is first polished on the frame alone, so that ``G`` carries
@@ -50,7 +52,9 @@ part (which branches live, their weights) is ~50 lines below.
    slots; the ones that get a slot become GTSAM smoothers (prior + frame factors, LM) and are
    rescored with GTSAM's marginal exactly like step 1.
 4. *Prune.* Branches more than :attr:`MhtConfig.prune_nats` behind the best are dropped;
-   duplicates are merged keeping the better (a MAP over mode histories: the better route to a
+   duplicates (within :attr:`MhtConfig.separation`, or within Mahalanobis distance
+   :attr:`MhtConfig.merge_mahalanobis2` under the better branch's marginal: one broad mode is
+   not several) are merged keeping the better (a MAP over mode histories: the better route to a
    mode wins, weights are not summed, since a proposal's prior is borrowed from its parent).
    Log-weights are then shifted so the best is 0.
 
@@ -111,6 +115,8 @@ class MhtConfig:
     """A branch is dropped when its log-weight falls this far behind the best (1 : e^20)."""
     separation: tuple[float, float] = DEFAULT_SEPARATION
     """Two branches closer than (rotation rad, centre m) are one mode and are merged."""
+    merge_mahalanobis2: float = 22.5
+    """Also one mode when ``xi^T Sigma^-1 xi`` below this under the better branch's marginal (chi-square(6) 99.9 %)."""
     polish_iters: int = 6
     """Batched Gauss-Newton steps that polish each proposal on the frame, and again on its window."""
     frame_ellipse: bool = True
@@ -138,6 +144,12 @@ class _Branch:
 def _sqrt_psd(C: np.ndarray) -> np.ndarray:
     w, V = np.linalg.eigh(0.5 * (C + C.T))
     return V * np.sqrt(np.maximum(w, 0.0))
+
+
+def _mahalanobis2(T: np.ndarray, centres: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """``xi^T Sigma^-1 xi`` of pose ``T`` around each centre ``(B, 4, 4)`` with covariances ``(B, 6, 6)``."""
+    xi = local(centres, np.broadcast_to(T, centres.shape))
+    return np.einsum("bi,bi->b", xi, np.linalg.solve(covs, xi[..., None])[..., 0])
 
 
 class MhtTracker(Tracker):
@@ -215,6 +227,16 @@ class MhtTracker(Tracker):
             rec += r
         return out, rec
 
+    def _duplicate(self, T: np.ndarray, kept: list[_Branch]) -> bool:
+        """True when ``T`` is the same mode as one of ``kept`` (absolute separation or Mahalanobis distance)."""
+        if not kept:
+            return False
+        centres = np.stack([k.smoother.newest for k in kept])
+        if near(T, centres, self.mht.separation).any():
+            return True
+        covs = np.stack([k.smoother.cov for k in kept])
+        return bool(np.any(_mahalanobis2(T, centres, covs) < self.mht.merge_mahalanobis2))
+
     def _select(self, branches: list[_Branch]) -> list[_Branch]:
         """Best first; merge duplicates (keep the better); prune; keep K; shift log-weights so the best is 0."""
         live = sorted([b for b in branches if np.isfinite(b.log_w)], key=lambda b: -b.log_w)
@@ -226,7 +248,7 @@ class MhtTracker(Tracker):
         for b in live:
             if b.log_w < best - self.mht.prune_nats or len(kept) >= self.mht.max_branches:
                 continue
-            if kept and near(b.smoother.newest, np.stack([k.smoother.newest for k in kept]), self.mht.separation).any():
+            if self._duplicate(b.smoother.newest, kept):
                 continue
             kept.append(b)
         for b in kept:
@@ -260,18 +282,16 @@ class MhtTracker(Tracker):
         cands.sort(key=lambda c: -c[0])
         # compete for slots: a candidate needs a slot among the K best and must not duplicate a better pose
         slots = sorted([b.log_w for b in branches], reverse=True)
-        taken = list(held)
         out, admitted, rec = [], 0, 0
         for score, T, mean, pc, w0 in cands:
             rank = sum(s > score for s in slots)
             if rank >= self.mht.max_branches:
                 break
-            if near(T, np.stack(taken), self.mht.separation).any():
+            if self._duplicate(T, branches + out):
                 continue
             nb, r = self._new_branch(lik, key, obs, T, mean, pc, w0)
             rec += r
             out.append(nb)
-            taken.append(nb.smoother.newest)
             slots.append(nb.log_w)
             slots.sort(reverse=True)
             admitted += 1
@@ -322,7 +342,7 @@ class MhtTracker(Tracker):
         branches = self._select(branches)
         prev_w = [b.log_w - b.inc for b in branches]  # proposals inherit the parent's weight before this frame
         n_prop = admitted = 0
-        if lik.has_image_evidence:
+        if "conic" in lik.term_names:  # the proposals are the ellipse's ambiguities: only with a backbone
             new, n_prop, admitted, r = self._propose(lik, key, observation, branches, prev_w)
             recovered += r
             branches = self._select(branches + new)

@@ -110,6 +110,23 @@ def test_redetects_when_every_branch_is_implausible(monkeypatch: pytest.MonkeyPa
     assert _close(est.cam_T_needle, seq.cam_T_needle[1])
 
 
+def test_branches_whose_smoother_raises_end_and_the_bank_redetects(monkeypatch: pytest.MonkeyPatch) -> None:
+    from pinpoint_fg.trackers.map import MapSmoother
+
+    seq = synthetic_sequence(2, seed=18)
+    tr = MhtTracker(_config())
+    tr.step(seq.observations[0])
+
+    def fail(*args: object) -> None:
+        raise RuntimeError("Indeterminate linear system detected while working near variable")
+
+    monkeypatch.setattr(MapSmoother, "advance", fail)
+    est = tr.step(seq.observations[1])
+    assert est.reseeded and est.extra["recovered"] >= 1
+    _check_weights(est)
+    assert _close(est.cam_T_needle, seq.cam_T_needle[1])
+
+
 def test_config_validation() -> None:
     with pytest.raises(ValueError):
         MhtConfig(max_branches=0)

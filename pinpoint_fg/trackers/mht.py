@@ -64,6 +64,11 @@ part (which branches live, their weights) is ~50 lines below.
 ``MapConfig.prior_sigma`` at the mode, weighted by their Laplace evidence under that prior
 (``Estimate.reseeded`` on re-detection).
 
+**Robustness.** Each branch's smoother recovers as ``map``'s does; a branch whose recovery raises
+too ends, and a candidate whose smoother raises is not admitted (both count in ``recovered``).
+When no branch is left the bank re-detects from the frame; if GTSAM cannot solve any seed with
+the frame, the best seed is held by its weak prior alone for this frame.
+
 **Report.** The MAP is the best branch's pose; ``particles`` are the branch poses padded to ``K``
 rows (``particles.npz`` needs a fixed ``N``) with copies of the best pose at weight 0 and
 log-posterior ``-inf``; ``weights`` are the normalised branch weights, ``log_posterior`` their
@@ -205,13 +210,16 @@ class MhtTracker(Tracker):
         return float(laplace_log_evidence(E, H) + gaussian_log_normaliser(prior_cov))
 
     def _new_branch(self, lik: FrameLikelihood, key: int, obs: Observation, T_init: np.ndarray,
-                    mean: np.ndarray, prior_cov: np.ndarray, log_w0: float) -> tuple[_Branch, int]:
+                    mean: np.ndarray, prior_cov: np.ndarray, log_w0: float,
+                    frame_factors: bool = True) -> tuple[_Branch | None, int]:
+        """A new smoother at ``key``: the frame's factors and the prior ``N(mean, prior_cov)``; None if GTSAM raises."""
         sm = MapSmoother(self.mht.map, self.config.window)
         noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (prior_cov + prior_cov.T))
+        factors = lik.gtsam_factors(key) if frame_factors else []
         try:
-            result = sm.restart(lik.gtsam_factors(key), key, T_init, prior=(mean, noise))
+            result = sm.restart(factors, key, T_init, prior=(mean, noise))
         except RuntimeError:
-            result = sm.restart(lik.gtsam_factors(key), key, T_init)
+            return None, 1
         T = sm.estimate(key)
         cov, fell_back, _ = sm.finish(key, obs.frame, obs.t_s, T)
         inc = self._evidence(lik, T, cov, mean, prior_cov)
@@ -223,6 +231,12 @@ class MhtTracker(Tracker):
         out, rec = [], 0
         for T in modes[: self.mht.max_branches]:
             b, r = self._new_branch(lik, key, obs, T, T, self._weak_cov, 0.0)
+            rec += r
+            if b is not None:
+                out.append(b)
+        if not out:  # GTSAM could not solve any seed with this frame: hold the best seed by its weak prior alone
+            b, r = self._new_branch(lik, key, obs, modes[0], modes[0], self._weak_cov, 0.0, frame_factors=False)
+            assert b is not None
             out.append(b)
             rec += r
         return out, rec
@@ -291,6 +305,8 @@ class MhtTracker(Tracker):
                 continue
             nb, r = self._new_branch(lik, key, obs, T, mean, pc, w0)
             rec += r
+            if nb is None:
+                continue
             out.append(nb)
             slots.append(nb.log_w)
             slots.sort(reverse=True)
@@ -326,7 +342,11 @@ class MhtTracker(Tracker):
             branches = []
             for b in self.branches:
                 mean, pc = D @ b.smoother.newest, b.smoother.cov + Q
-                result, r = b.smoother.advance(lik.gtsam_factors(key), key, D, motion_noise)
+                try:
+                    result, r = b.smoother.advance(lik.gtsam_factors(key), key, D, motion_noise)
+                except RuntimeError:  # even map's recovery raised: this branch ends here
+                    recovered += 1
+                    continue
                 T = b.smoother.estimate(key)
                 cov, fell_back, _ = b.smoother.finish(key, observation.frame, observation.t_s, T)
                 recovered += r + int(fell_back)
@@ -335,7 +355,8 @@ class MhtTracker(Tracker):
                 b.prior_mean, b.prior_cov = mean, pc
                 b.iterations = max(int(result.getIterations()), 1)
                 branches.append(b)
-            if self.mht.map.reseed and all(implausible(float(lik.nll(b.smoother.newest)[0]), lik) for b in branches):
+            if not branches or (self.mht.map.reseed and
+                                all(implausible(float(lik.nll(b.smoother.newest)[0]), lik) for b in branches)):
                 branches, r = self._seed(lik, key, observation)
                 recovered += r
                 reseeded = True

@@ -52,7 +52,8 @@ part (which branches live, their weights) is ~50 lines below.
    over ten frames that ruled it out (measured on the normal run: the MAP jumped to the twin on
    13 % of the frames). So the parent's last :attr:`MhtConfig.history_frames` poses, carried by
    ``G`` and polished on their own frames (3 Gauss-Newton steps), are charged
-   ``sum_j nll_j(G x_j polished) - nll_j(x_j)`` — the per-frame evidence of the history "this
+   ``sum_j nll_j(G x_j polished) - nll_j(x_j polished)`` (the parent's pose polished alike) —
+   the per-frame evidence of the history "this
    proposal all along" against the parent's (motion consistency assumed equal). Frames that
    cannot tell them apart cost nothing, so a truly ambiguous twin is admitted. Proposals within
    :attr:`MhtConfig.admit_nats` of the best branch that are not duplicates (within
@@ -284,7 +285,7 @@ class MhtTracker(Tracker):
         """What the parent's past frames say against the proposal's history ``G x_j``, and that history.
 
         Each past pose carried by ``G`` is polished on its own frame (a few Gauss-Newton steps);
-        the cost is ``sum_j nll_j(polished) - nll_j(x_j)`` (the evidence of the mode history "this
+        the cost is ``sum_j nll_j(polished) - nll_j(x_j polished alike)`` (the evidence of the mode history "this
         proposal all along" relative to the parent's, per frame, motion consistency assumed equal).
         """
         cost, hist = 0.0, []
@@ -292,9 +293,11 @@ class MhtTracker(Tracker):
             if lik_j.dim == 0:
                 hist.append((lik_j, G @ T_j))
                 continue
-            Tq, _, _ = polish_with_prior(lik_j, G @ T_j, iters=3)
-            cost += float(lik_j.nll(Tq)[0] - lik_j.nll(T_j)[0])
-            hist.append((lik_j, Tq[0]))
+            # both polished alike on the frame alone: the parent's pose is a filtered estimate, not the
+            # frame's own optimum, and comparing against it unpolished would favour every proposal
+            Tq, E, _ = polish_with_prior(lik_j, np.stack([T_j, G @ T_j]), iters=3)
+            cost += float(E[1] - E[0])
+            hist.append((lik_j, Tq[1]))
         return cost, hist
 
     def _propose(self, lik: FrameLikelihood, key: int, obs: Observation, branches: list[_Branch],

@@ -37,10 +37,11 @@ def _check_weights(est) -> None:  # noqa: ANN001
         assert m.cov_xi.shape == (6, 6) and np.all(np.linalg.eigvalsh(m.cov_xi) > 0)
 
 
-def test_ambiguous_run_keeps_a_branch_at_the_truth() -> None:
+@pytest.mark.parametrize("transport", [False, True])
+def test_ambiguous_run_keeps_a_branch_at_the_truth(transport: bool) -> None:
     """Tail keypoint and backbone only: twin and tail flip explain the frame as well as the truth."""
     seq = synthetic_sequence(16, seed=3, tip=False, kinematics=False)
-    mht, mp = MhtTracker(_config()), MapTracker(_config())
+    mht, mp = MhtTracker(_config(), MhtConfig(transport_prior=transport)), MapTracker(_config())
     held, map_ok, several = [], [], []
     for obs, T in zip(seq.observations, seq.cam_T_needle, strict=True):
         est = mht.step(obs)

@@ -77,6 +77,23 @@ def keypoint_residual(
     return r, Jpi @ Jp
 
 
+def needle_image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float) -> np.ndarray:
+    """Image conic ``C = A^T diag(1, 1, -r^2) A`` of the needle circle, ``A = adj(K [r1 r2 t])``; ``(N, 3, 3)``.
+
+    The same construction :func:`conic_residual` differentiates (adjugate rows ``h2 x h3``,
+    ``h3 x h1``, ``h1 x h2``), without its Jacobian, scaled to unit Frobenius norm and to a
+    non-negative ``C[0, 0] + C[1, 1]`` so that two poses' conics can be compared entrywise.
+    """
+    T = as_pose_batch(cam_T_needle)
+    K = np.asarray(K, dtype=float)
+    h1, h2, h3 = T[:, :3, 0] @ K.T, T[:, :3, 1] @ K.T, T[:, :3, 3] @ K.T
+    A = np.stack([np.cross(h2, h3), np.cross(h3, h1), np.cross(h1, h2)], axis=1)
+    C = np.swapaxes(A, 1, 2) @ np.diag([1.0, 1.0, -(float(radius_m) ** 2)]) @ A
+    C = C / np.maximum(np.linalg.norm(C, axis=(1, 2)), 1e-300)[:, None, None]
+    sign = np.where(C[:, 0, 0] + C[:, 1, 1] < 0, -1.0, 1.0)
+    return C * sign[:, None, None]
+
+
 def conic_residual(
     cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray, jacobian: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None]:

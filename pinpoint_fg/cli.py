@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pinpoint_fg.errors import InputError
 
-METHODS = ("svn", "svgd", "pf", "map")
+METHODS = ("svn", "svgd", "pf", "map", "mht")
 SWITCHES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
 SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration")
 OVERWRITE_HELP = "write into a non-empty --out (replacing what this command writes there)"
@@ -276,7 +276,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("track", help="track the needle through a recorded run")
     s.add_argument("run", type=Path)
     s.add_argument("--method", choices=METHODS, default="svn")
-    s.add_argument("--particles", type=int, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
+    s.add_argument("--particles", type=int, default=None,
+                   help="default: 50 (svn, svgd), 3000 (pf); mht: the bank size K (4)")
     s.add_argument("--window", type=int, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))

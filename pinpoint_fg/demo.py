@@ -3,7 +3,7 @@
 * **demo** (the README's main job): simulates the normal-speed, rotation and suturing runs,
   tracks each with svn, pf and map (in parallel processes), evaluates them against the
   simulator's ground truth and prints the comparison table; figures and tables land in ``OUT``.
-* **benchmark**: every scenario x every method (svn, svgd, pf, map) on fixed seeds; prints
+* **benchmark**: every scenario x every method (svn, svgd, pf, map, mht) on fixed seeds; prints
   accuracy, spread, bimodality and latency side by side, and latency *ratios* against the
   baselines measured in the same run (machines are noisy; ratios are what transfer).
 
@@ -27,7 +27,7 @@ from tqdm import tqdm
 DEMO_SCENARIOS = ("normal", "rotation", "suturing")
 DEMO_METHODS = ("svn", "pf", "map")
 BENCH_SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration")
-BENCH_METHODS = ("svn", "svgd", "pf", "map")
+BENCH_METHODS = ("svn", "svgd", "pf", "map", "mht")
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,7 @@ class TrackJob:
     run: str
     """Recording directory."""
     method: str
-    """svn, svgd, pf or map."""
+    """svn, svgd, pf, map or mht."""
     out: str
     """Result directory."""
     seed: int = 0

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors.lie import homogeneous, local, se3_exp
+from factors.residuals import needle_image_conic
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.stein import floor_hessians
 
@@ -261,12 +262,8 @@ def seed_particles(
 
 
 def image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float) -> np.ndarray:
-    """The image conic ``adj(H)^T diag(1, 1, -r^2) adj(H)`` of the needle circle at a pose (unit Frobenius norm)."""
-    T = np.asarray(cam_T_needle, dtype=float)
-    H = K @ np.stack([T[:3, 0], T[:3, 1], T[:3, 3]], axis=1)
-    A = np.stack([np.cross(H[:, 1], H[:, 2]), np.cross(H[:, 2], H[:, 0]), np.cross(H[:, 0], H[:, 1])])
-    C = A.T @ np.diag([1.0, 1.0, -radius_m**2]) @ A
-    return C / np.linalg.norm(C)
+    """The needle circle's image conic at one pose, unit norm (:func:`factors.residuals.needle_image_conic`)."""
+    return needle_image_conic(cam_T_needle, K, radius_m)[0]
 
 
 def twin_pose(lik: FrameLikelihood, cam_T_needle: np.ndarray, cfg: InitConfig = InitConfig(),

@@ -26,12 +26,14 @@ from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig
 
-METHODS = ("svn", "svgd", "pf", "map")
-DEFAULT_PARTICLES = {"svn": 50, "svgd": 50, "pf": 3000, "map": 1}
+METHODS = ("svn", "svgd", "pf", "map", "mht")
+DEFAULT_PARTICLES = {"svn": 50, "svgd": 50, "pf": 3000, "map": 1, "mht": 4}
+#: Methods whose particles carry weights (particles.npz has ``weight``).
+WEIGHTED_METHODS = ("pf", "mht")
 
 
 def make_tracker(method: str, config: TrackerConfig) -> Tracker:
-    """The tracker of ``method`` (svn, svgd, pf, map) with ``config``."""
+    """The tracker of ``method`` (svn, svgd, pf, map, mht) with ``config``."""
     if method == "svn":
         from pinpoint_fg.trackers.svn import SvnTracker
 
@@ -48,6 +50,10 @@ def make_tracker(method: str, config: TrackerConfig) -> Tracker:
         from pinpoint_fg.trackers.map import MapTracker
 
         return MapTracker(config)
+    if method == "mht":
+        from pinpoint_fg.trackers.mht import MhtConfig, MhtTracker
+
+        return MhtTracker(config, MhtConfig(max_branches=config.particles))
     raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
@@ -117,7 +123,7 @@ def track_recording(
     settings["noise_file"] = None if noise_file is None else str(noise_file)
     show = sys.stderr.isatty() if progress is None else bool(progress)
     with ResultWriter(out, method, settings, recording.info.name, str(Path(run).resolve()),
-                      weighted=(method == "pf"), smoothed=config.window > 1) as writer:
+                      weighted=(method in WEIGHTED_METHODS), smoothed=config.window > 1) as writer:
         for rec in tqdm(frames, desc=f"{method} {recording.info.name}", unit="frame", disable=not show):
             obs = observe_frame(recording, rec, max_points=max_points)
             est = tracker.step(obs)

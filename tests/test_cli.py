@@ -99,4 +99,4 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert (tmp_path / "demo" / "report" / "summary.csv").exists()
     assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2"]) == 0
     text = (tmp_path / "bench" / "benchmark.txt").read_text()
-    assert "median vs pf" in text and text.count("\n") == 1 + 5 * 4
+    assert "median vs pf" in text and text.count("\n") == 1 + 5 * 5 and " mht " in text

@@ -55,6 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors.lie import se3_exp
+from factors.residuals import needle_image_conic
 from pinpoint_fg.eval.metrics import PoseErrors, pose_errors
 from pinpoint_fg.init import circle_poses_from_conic
 from pinpoint_fg.io.recording import Recording
@@ -110,15 +111,10 @@ class FrameAmbiguity:
 def image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float) -> np.ndarray:
     """Image conic ``C`` (3, 3) of the needle circle at one pose: ``adj(H)^T diag(1, 1, -r^2) adj(H)``.
 
-    ``H = K [r1 r2 t]``; scaled to unit Frobenius norm (a conic is defined up to scale).
+    ``H = K [r1 r2 t]``; scaled to unit Frobenius norm (a conic is defined up to scale). The one
+    implementation is :func:`factors.residuals.needle_image_conic`.
     """
-    T = np.asarray(cam_T_needle, dtype=float)
-    H = np.asarray(K, dtype=float) @ np.stack([T[:3, 0], T[:3, 1], T[:3, 3]], axis=1)
-    h1, h2, h3 = H[:, 0], H[:, 1], H[:, 2]
-    A = np.stack([np.cross(h2, h3), np.cross(h3, h1), np.cross(h1, h2)], axis=0)  # adj(H) rows
-    C = A.T @ np.diag([1.0, 1.0, -float(radius_m) ** 2]) @ A
-    C = 0.5 * (C + C.T)
-    return C / max(np.linalg.norm(C), 1e-300)
+    return needle_image_conic(cam_T_needle, K, radius_m)[0]
 
 
 def _line_angle_deg(n1: np.ndarray, n2: np.ndarray) -> np.ndarray:

@@ -136,6 +136,116 @@ def gaussian_q95(cov_xi: np.ndarray, z: np.ndarray) -> tuple[float, float]:
             float(weighted_quantile(np.linalg.norm(xi[:, :3], axis=1), None, 0.95)))
 
 
+class MapSmoother:
+    """One single-mode GTSAM fixed-lag smoother and its bookkeeping (shared by ``map`` and the ``mht`` bank).
+
+    Builds the graph exactly as the module docstring says: :meth:`restart` (a fresh smoother on
+    one key: its frame factors and a prior), :meth:`advance` (motion + frame factors, with the
+    recovery after GTSAM raises), :meth:`finish` (estimate, marginal covariance, smoothed pose).
+    """
+
+    def __init__(self, map_config: MapConfig, window: int) -> None:
+        self.map = map_config
+        self.window = int(window)
+        self.lag = float(window - 1)
+        self.prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(map_config.prior_sigma))
+        self.smoother: gtsam.BatchFixedLagSmoother | None = None
+        self.key = -1  # newest key
+        self.first_key = 0  # oldest key the current smoother has held
+        self.stamps: dict[int, tuple[int, float]] = {}  # key -> (frame, t_s)
+        self.newest: np.ndarray | None = None
+        self.cov: np.ndarray | None = None
+        self.last_update: tuple[gtsam.NonlinearFactorGraph, gtsam.Values] | None = None
+
+    def _new_smoother(self) -> gtsam.BatchFixedLagSmoother:
+        return gtsam.BatchFixedLagSmoother(self.lag, self.map.lm_params())
+
+    def restart(self, frame_factors: list, key: int, cam_T_init: np.ndarray,
+                prior: tuple[np.ndarray, gtsam.noiseModel.Base] | None = None) -> gtsam.FixedLagSmootherResult:
+        """A fresh smoother holding only ``key``: its frame factors and a prior (default: weak, at ``cam_T_init``)."""
+        self.smoother = self._new_smoother()
+        self.first_key = key
+        mean, noise = (cam_T_init, self.prior_noise) if prior is None else prior
+        g = _graph([*frame_factors, PosePriorFactor(key, mean, noise)])
+        v = gtsam.Values()
+        v.insert(key, _pose3(cam_T_init))
+        self.last_update = (g, v)
+        return self.smoother.update(g, v, {key: float(key)})
+
+    def _rebuild(self, new_factors: list, key: int, cam_T_init: np.ndarray) -> gtsam.FixedLagSmootherResult:
+        """Recovery after GTSAM raised: previous pose as a Gaussian prior, this frame's factors, weak prior."""
+        assert self.newest is not None and self.cov is not None
+        self.smoother = self._new_smoother()
+        self.first_key = key - 1
+        prev_noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (self.cov + self.cov.T))
+        g = _graph([PosePriorFactor(key - 1, self.newest, prev_noise), *new_factors,
+                    PosePriorFactor(key, cam_T_init, self.prior_noise)])
+        v = gtsam.Values()
+        v.insert(key - 1, _pose3(self.newest))
+        v.insert(key, _pose3(cam_T_init))
+        return self.smoother.update(g, v, {key - 1: float(key - 1), key: float(key)})
+
+    def advance(self, frame_factors: list, key: int, D: np.ndarray, motion_noise: gtsam.noiseModel.Base
+                ) -> tuple[gtsam.FixedLagSmootherResult, int]:
+        """Add ``key`` with its frame factors and the motion factor from ``key - 1``; returns (result, recoveries)."""
+        assert self.smoother is not None and self.newest is not None
+        new_factors = [*frame_factors, MotionFactor(key - 1, key, D, motion_noise)]
+        cam_T_init = D @ self.newest
+        g = _graph(new_factors)
+        v = gtsam.Values()
+        v.insert(key, _pose3(cam_T_init))
+        self.last_update = (g, v)
+        try:
+            return self.smoother.update(g, v, {key: float(key)}), 0
+        except RuntimeError:
+            try:
+                return self._rebuild(new_factors, key, cam_T_init), 1
+            except RuntimeError:  # the previous pose's prior is the problem: start over from here
+                return self.restart(frame_factors, key, cam_T_init), 1
+
+    def estimate(self, key: int) -> np.ndarray:
+        """(4, 4) the smoother's current estimate of ``key``."""
+        assert self.smoother is not None
+        return self.smoother.calculateEstimatePose3(key).matrix()
+
+    def marginal_cov(self, key: int) -> tuple[np.ndarray, bool]:
+        """Marginal covariance (6, 6) of ``key``; True when the weak-prior fallback was needed."""
+        assert self.smoother is not None
+        factors = self.smoother.getFactors()
+        est = self.smoother.calculateEstimate()
+        try:
+            C = gtsam.Marginals(factors, est).marginalCovariance(key)
+            used_fallback = False
+        except RuntimeError:
+            used_fallback = True
+            keys = list(est.keys())
+            g = _graph(live_factors(factors)
+                       + [PosePriorFactor(k, est.atPose3(k), self.prior_noise) for k in keys])
+            try:
+                C = gtsam.Marginals(g, est).marginalCovariance(key)
+            except RuntimeError:  # last resort: the weak prior's covariance
+                C = np.diag(np.square(self.map.prior_sigma))
+        C = np.asarray(C, dtype=float)
+        return 0.5 * (C + C.T), used_fallback
+
+    def finish(self, key: int, frame: int, t_s: float, est: np.ndarray
+               ) -> tuple[np.ndarray, bool, tuple[int, float, np.ndarray] | None]:
+        """Record ``key`` as the newest; returns its marginal covariance, whether it fell back, the smoothed pose."""
+        self.key = key
+        self.stamps[key] = (frame, t_s)
+        self.newest = est
+        cov, fell_back = self.marginal_cov(key)
+        self.cov = cov
+        smoothed = None
+        old = key - (self.window - 1)
+        if self.window > 1 and old >= self.first_key:
+            f_old, t_old = self.stamps[old]
+            smoothed = (f_old, t_old, self.estimate(old))
+        for k in [k for k in self.stamps if k < old]:
+            del self.stamps[k]
+        return cov, fell_back, smoothed
+
+
 class MapTracker(Tracker):
     """GTSAM batch fixed-lag smoother over a window of ``config.window`` frames (module docstring)."""
 
@@ -147,144 +257,80 @@ class MapTracker(Tracker):
             raise ValueError(f"window must be at least 1, got {config.window}")
         self.map = map_config
         self._model = config.model
-        self._lag = float(config.window - 1)
-        self._prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(map_config.prior_sigma))
+        self._branch = MapSmoother(map_config, config.window)
         self._walk_noise = gtsam.noiseModel.Diagonal.Sigmas(RANDOM_WALK_SIGMA)
         self._z = np.random.default_rng([config.seed, 95]).standard_normal((map_config.q95_samples, 6))
-        self._smoother: gtsam.BatchFixedLagSmoother | None = None
-        self._key = -1  # newest key (= step count - 1)
-        self._first_key = 0  # oldest key the current smoother has held
-        self._stamps: dict[int, tuple[int, float]] = {}  # key -> (frame, t_s)
-        self._newest: np.ndarray | None = None
-        self._cov: np.ndarray | None = None
-        self.last_update: tuple[gtsam.NonlinearFactorGraph, gtsam.Values] | None = None
-        """The factors and initial values added by the latest step (for inspection and tests)."""
 
     @property
     def smoother(self) -> gtsam.BatchFixedLagSmoother | None:
         """The GTSAM smoother (None before the first frame)."""
-        return self._smoother
+        return self._branch.smoother
+
+    @property
+    def _smoother(self) -> gtsam.BatchFixedLagSmoother | None:
+        return self._branch.smoother
+
+    @_smoother.setter
+    def _smoother(self, value: gtsam.BatchFixedLagSmoother | None) -> None:  # tests inject failures here
+        self._branch.smoother = value
+
+    @property
+    def last_update(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values] | None:
+        """The factors and initial values added by the latest step (for inspection and tests)."""
+        return self._branch.last_update
 
     @property
     def newest_key(self) -> int:
         """GTSAM key of the newest pose (-1 before the first frame)."""
-        return self._key
+        return self._branch.key
 
     @property
     def particles(self) -> np.ndarray:
         """(1, 4, 4) the newest estimate; (0, 4, 4) before the first frame."""
-        return np.zeros((0, 4, 4)) if self._newest is None else self._newest[None].copy()
+        b = self._branch
+        return np.zeros((0, 4, 4)) if b.newest is None else b.newest[None].copy()
 
     def settings(self) -> dict:
         """Common settings plus the smoother's."""
         out = super().settings()
-        out.update(smoother="BatchFixedLagSmoother", lag=self._lag, prior_sigma=list(self.map.prior_sigma),
+        out.update(smoother="BatchFixedLagSmoother", lag=self._branch.lag, prior_sigma=list(self.map.prior_sigma),
                    max_iterations=self.map.max_iterations, reseed=self.map.reseed)
         return out
-
-    # ------------------------------------------------------------------ helpers
-    def _new_smoother(self) -> gtsam.BatchFixedLagSmoother:
-        return gtsam.BatchFixedLagSmoother(self._lag, self.map.lm_params())
 
     def _seed_pose(self, lik: FrameLikelihood) -> np.ndarray:
         _, modes = seed_particles(lik, max(self.config.particles, InitConfig().max_modes), self.rng)
         return modes[0]
 
-    def _restart(self, frame_factors: list, key: int, cam_T_init: np.ndarray) -> gtsam.FixedLagSmootherResult:
-        """A fresh smoother holding only ``key``: its frame factors and a weak prior at ``cam_T_init``."""
-        self._smoother = self._new_smoother()
-        self._first_key = key
-        g = _graph([*frame_factors, PosePriorFactor(key, cam_T_init, self._prior_noise)])
-        v = gtsam.Values()
-        v.insert(key, _pose3(cam_T_init))
-        self.last_update = (g, v)
-        return self._smoother.update(g, v, {key: float(key)})
-
-    def _rebuild(self, new_factors: list, key: int, cam_T_init: np.ndarray) -> gtsam.FixedLagSmootherResult:
-        """Recovery after GTSAM raised: previous pose as a Gaussian prior, this frame's factors, weak prior."""
-        assert self._newest is not None and self._cov is not None
-        self._smoother = self._new_smoother()
-        self._first_key = key - 1
-        prev_noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (self._cov + self._cov.T))
-        g = _graph([PosePriorFactor(key - 1, self._newest, prev_noise), *new_factors,
-                    PosePriorFactor(key, cam_T_init, self._prior_noise)])
-        v = gtsam.Values()
-        v.insert(key - 1, _pose3(self._newest))
-        v.insert(key, _pose3(cam_T_init))
-        return self._smoother.update(g, v, {key - 1: float(key - 1), key: float(key)})
-
-    def _marginal_cov(self, key: int) -> tuple[np.ndarray, bool]:
-        """Marginal covariance (6, 6) of ``key``; True when the weak-prior fallback was needed."""
-        assert self._smoother is not None
-        factors = self._smoother.getFactors()
-        est = self._smoother.calculateEstimate()
-        try:
-            C = gtsam.Marginals(factors, est).marginalCovariance(key)
-            used_fallback = False
-        except RuntimeError:
-            used_fallback = True
-            keys = list(est.keys())
-            g = _graph(live_factors(factors)
-                       + [PosePriorFactor(k, est.atPose3(k), self._prior_noise) for k in keys])
-            try:
-                C = gtsam.Marginals(g, est).marginalCovariance(key)
-            except RuntimeError:  # last resort: the weak prior's covariance
-                C = np.diag(np.square(self.map.prior_sigma))
-        C = np.asarray(C, dtype=float)
-        return 0.5 * (C + C.T), used_fallback
+    def motion(self, observation: Observation) -> tuple[np.ndarray, gtsam.noiseModel.Base]:
+        """``(D, noise)`` of the motion factor into this frame: the grasper's motion, or a random walk."""
+        delta = self.grasper_motion(observation)
+        if delta is None or not self.config.switches.motion:
+            return np.eye(4), self._walk_noise
+        return delta, self.config.noise["motion"].gtsam_model()
 
     # ------------------------------------------------------------------ step
     def step(self, observation: Observation) -> Estimate:
         """Add the frame to the smoother, optimise, report the newest pose and its marginal (module docstring)."""
         t0 = time.perf_counter()
         lik = FrameLikelihood(observation, self._model)
-        delta = self.grasper_motion(observation)
-        key = self._key + 1
+        D, motion_noise = self.motion(observation)
+        b = self._branch
+        key = b.key + 1
         frame_factors = lik.gtsam_factors(key)
         recovered = 0
         reseeded = False
-        if self._smoother is None:
-            result = self._restart(frame_factors, key, self._seed_pose(lik))
+        if b.smoother is None:
+            result = b.restart(frame_factors, key, self._seed_pose(lik))
         else:
-            assert self._newest is not None
-            if delta is None or not self.config.switches.motion:
-                D, noise = np.eye(4), self._walk_noise
-            else:
-                D, noise = delta, self.config.noise["motion"].gtsam_model()
-            new_factors = [*frame_factors, MotionFactor(key - 1, key, D, noise)]
-            cam_T_init = D @ self._newest
-            g = _graph(new_factors)
-            v = gtsam.Values()
-            v.insert(key, _pose3(cam_T_init))
-            self.last_update = (g, v)
-            try:
-                result = self._smoother.update(g, v, {key: float(key)})
-            except RuntimeError:
-                recovered += 1
-                try:
-                    result = self._rebuild(new_factors, key, cam_T_init)
-                except RuntimeError:  # the previous pose's prior is the problem: start over from here
-                    result = self._restart(frame_factors, key, cam_T_init)
-        assert self._smoother is not None
-        est = self._smoother.calculateEstimatePose3(key).matrix()
-        if self.map.reseed and key > self._first_key and implausible(float(lik.nll(est)[0]), lik):
-            result = self._restart(frame_factors, key, self._seed_pose(lik))
-            est = self._smoother.calculateEstimatePose3(key).matrix()
+            result, recovered = b.advance(frame_factors, key, D, motion_noise)
+        est = b.estimate(key)
+        if self.map.reseed and key > b.first_key and implausible(float(lik.nll(est)[0]), lik):
+            result = b.restart(frame_factors, key, self._seed_pose(lik))
+            est = b.estimate(key)
             reseeded = True
-        self._key = key
-        self._stamps[key] = (observation.frame, observation.t_s)
-        self._newest = est
-        cov, fell_back = self._marginal_cov(key)
+        cov, fell_back, smoothed = b.finish(key, observation.frame, observation.t_s, est)
         recovered += int(fell_back)
-        self._cov = cov
         q_t, q_r = gaussian_q95(cov, self._z)
-        smoothed = None
-        old = key - (self.config.window - 1)
-        if self.config.window > 1 and old >= self._first_key:
-            frame, t_s = self._stamps[old]
-            smoothed = (frame, t_s, self._smoother.calculateEstimatePose3(old).matrix())
-        for k in [k for k in self._stamps if k < old]:
-            del self._stamps[k]
         error = float(result.getError())
         self.frames_seen += 1
         return Estimate(

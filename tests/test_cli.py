@@ -100,3 +100,16 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2"]) == 0
     text = (tmp_path / "bench" / "benchmark.txt").read_text()
     assert "median vs pf" in text and text.count("\n") == 1 + 5 * 5 and " mht " in text
+
+
+def test_output_to_a_closed_pipe_is_not_a_traceback(runs: dict[str, Path]) -> None:
+    """`pinpoint-fg validate RUN | head -0`: the reader is gone before we write; exit 0, nothing on stderr."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "pinpoint_fg.cli", "validate", str(runs["normal"])],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # like `head` exiting at once
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 0
+    assert "Traceback" not in err and "BrokenPipeError" not in err

@@ -19,6 +19,7 @@ from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation
+from pinpoint_fg.posterior_modes import Mode
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,8 @@ class Estimate:
     """True when every hypothesis was implausible and the particles were re-seeded this frame."""
     extra: dict = field(default_factory=dict)
     """Method-specific per-frame numbers (appended as result columns)."""
+    modes: tuple[Mode, ...] | None = None
+    """Posterior modes (multi-hypothesis trackers), dominant first; None when the tracker has none."""
 
 
 #: :func:`implausible` fires when the best hypothesis's root-mean-square whitened residual exceeds this.

@@ -167,7 +167,7 @@ def modes_from_particles(
     clusters = [np.nonzero(label == lab)[0] for lab in np.unique(label)]
 
     def mass(c: np.ndarray) -> float:
-        return float(w[c].sum())
+        return min(1.0, float(w[c].sum()))  # rounding can push a whole set's sum to 1 + 2e-16
 
     def peak(c: np.ndarray) -> int:
         return int(c[np.argmin(rank[c])])

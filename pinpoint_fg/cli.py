@@ -85,7 +85,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pinpoint_fg.eval.report import evaluate
 
-    summary = evaluate(args.results, recording=args.recording, out=args.out)
+    summary = evaluate(args.results, recording=args.recording, out=args.out, reference=args.reference)
     print(summary)
     return 0
 
@@ -154,6 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("results", type=Path, nargs="+")
     s.add_argument("--recording", type=Path, default=None)
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--reference", type=Path, default=None,
+                   help="a multi-hypothesis (MHT) result of the same recording whose modes judge the bimodal verdicts")
     s.set_defaults(func=_cmd_evaluate)
 
     s = sub.add_parser("ablate", help="the ablation matrix of the paper's Table III")

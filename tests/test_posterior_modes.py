@@ -160,3 +160,15 @@ def test_bad_inputs_are_rejected() -> None:
         modes_from_particles(P, lp, -np.ones(10))
     with pytest.raises(ValueError):
         weak_direction()
+
+
+@pytest.mark.parametrize(("sep", "n_modes"), [(1.0, 1), (1.9, 1), (3.0, 2)])
+def test_peaks_nearer_than_the_resolution_are_one_mode(sep: float, n_modes: int) -> None:
+    # two sharp clusters (std 0.1 units, 50 nats deep valley between them): persistence alone would split
+    rng = np.random.default_rng(5)
+    c2 = np.array([sep, 0, 0, 0, 0, 0])
+    P1, l1 = _cloud(rng, 30, np.zeros(6), 0.1)
+    P2, l2 = _cloud(rng, 20, c2, 0.1)
+    modes = modes_from_particles(np.concatenate([P1, P2]), np.concatenate([l1, l2]))
+    assert len(modes) == n_modes
+    assert [m.weight for m in modes] == pytest.approx([1.0] if n_modes == 1 else [0.6, 0.4])

@@ -289,8 +289,8 @@ def mode_weights_over_time(t_s: np.ndarray, weights: np.ndarray, title: str, pat
                            threshold: float = 0.1) -> Path:
     """Stacked per-frame sorted mode weights (F, K) over time (NaN rows: no modes, left blank).
 
-    The bottom band is the dominant mode; the second band's height is the weight the modes verdict
-    compares with ``threshold`` (dashed line at ``1 - threshold``: a second band reaching below it is bimodal).
+    The bottom band is the dominant mode. The second mode's weight is also drawn as a black line,
+    with the modes verdict's ``threshold`` dashed: frames where the line reaches it are bimodal.
     """
     t = np.asarray(t_s, dtype=float)
     W = np.asarray(weights, dtype=float)
@@ -305,13 +305,15 @@ def mode_weights_over_time(t_s: np.ndarray, weights: np.ndarray, title: str, pat
         ax.fill_between(t, np.where(ok, bottom, np.nan), np.where(ok, top, np.nan), step="mid", linewidth=0,
                         color=colours[k % len(colours)], alpha=0.8, label=f"mode {k + 1}")
         bottom = top
-    ax.axhline(1.0 - threshold, color="black", linestyle="--", linewidth=0.8,
-               label=f"second mode = {threshold:g}")
+    if W.shape[1] > 1:
+        ax.step(t, np.where(ok, W[:, 1], np.nan), where="mid", color="black", linewidth=1.0,
+                label="second mode's weight")
+    ax.axhline(threshold, color="black", linestyle="--", linewidth=0.8, label=f"bimodal at >= {threshold:g}")
     ax.set_ylim(0.0, 1.0)
     ax.set_ylabel("mode weight", fontsize=9)
     ax.set_xlabel("time (s)", fontsize=9)
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=7, loc="lower left", ncol=W.shape[1] + 1)
+    ax.legend(fontsize=7, loc="center left", ncol=W.shape[1] + 2, framealpha=0.9)
     ax.grid(alpha=0.3)
     lo, hi = (float(t.min()), float(t.max())) if t.size else (0.0, 1.0)
     if hi <= lo:

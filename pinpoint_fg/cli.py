@@ -94,7 +94,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_dir
 
     prepare_output_dir(args.out, args.overwrite, "evaluation")
-    summary = evaluate(args.results, recording=args.recording, out=args.out)
+    summary = evaluate(args.results, recording=args.recording, out=args.out, reference=args.reference)
     print(summary)
     return 0
 
@@ -298,6 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--recording", type=Path, default=None)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    s.add_argument("--reference", type=Path, default=None,
+                   help="a multi-hypothesis (MHT) result of the same recording whose modes judge the bimodal verdicts")
     s.set_defaults(func=_cmd_evaluate)
 
     s = sub.add_parser("ablate", help="the ablation matrix of the paper's Table III")

@@ -1,4 +1,4 @@
-"""One mode of a tracker's posterior: its pose, weight and Gaussian spread (reported per frame)."""
+"""The modes of a pose posterior: one peak pose, its weight and its covariance per mode."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Mode:
-    """A posterior mode: a pose, its share of the posterior mass and its tangent covariance."""
+    """One mode of a frame's pose posterior."""
 
     cam_T_needle: np.ndarray
-    """(4, 4) the mode's pose."""
+    """(4, 4) peak pose."""
     weight: float
-    """Normalised weight of the mode (the modes of one frame sum to 1)."""
+    """Weight of the mode; the modes of a frame sum to 1."""
     cov_xi: np.ndarray
-    """(6, 6) covariance of the tangent ``[omega; v]`` at the mode (GTSAM right chart)."""
+    """(6, 6) covariance in GTSAM's chart at the peak, [omega; v], rad / m."""

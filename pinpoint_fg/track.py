@@ -24,6 +24,7 @@ from pinpoint_fg.io.result import FrameEstimate, ResultWriter
 from pinpoint_fg.likelihood import Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observe import observe_frame
+from pinpoint_fg.posterior_summary import modes_of_estimate, posterior_columns
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
@@ -75,19 +76,22 @@ def tracker_config(recording: Recording, method: str, particles: int | None = No
 
 
 def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None) -> FrameEstimate:
-    """Result row of an estimate, with the bimodality verdict of its particle set."""
+    """Result row of an estimate: the GMM bimodality verdict of its particle set, its modes (modes.csv) and
+    the extra columns ``bimodal_modes`` and ``weak_*`` (:mod:`pinpoint_fg.posterior_summary`)."""
     if est.particles.shape[0] >= 6:
         verdict = assess_bimodality(est.particles, est.cam_T_needle, weights=est.weights)
         bimodal = bool(verdict.bimodal)
     else:
         bimodal = False
+    modes = modes_of_estimate(est)
     extra = {"reseeded": float(est.reseeded)}
     extra.update({k: float(v) for k, v in est.extra.items()})
+    extra.update(posterior_columns(modes, est.cam_T_needle))
     return FrameEstimate(
         frame=est.frame, t_s=est.t_s, cam_T_needle=est.cam_T_needle, q95_trans_m=est.q95_trans_m,
         q95_rot_rad=est.q95_rot_rad, bimodal=bimodal, iterations=est.iterations, latency_ms=est.latency_ms,
         particles_T=est.particles, log_posterior=est.log_posterior, weight=est.weights,
-        smoothed=est.smoothed, extra=extra,
+        smoothed=est.smoothed, extra=extra, modes=modes,
     )
 
 

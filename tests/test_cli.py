@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pinpoint_fg.cli import main
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result import read_modes, read_result
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +44,16 @@ def test_track_every_method(runs: dict[str, Path], tmp_path: Path, method: str) 
     res = read_result(out)
     assert len(res.frame) == 12 and np.all(np.isfinite(res.cam_T_needle))
     assert (out / "trajectory.tum").read_text().count("\n") == 12
+    modes = read_modes(out)  # every method writes its posterior modes
+    assert modes.frames.tolist() == res.frame.tolist()
+    W = modes.weights_at(res.frame)
+    assert np.allclose(W.sum(axis=1), 1.0, atol=1e-9)
+    np.testing.assert_array_equal(res.extra["bimodal_modes"], (W[:, 1] >= 0.1).astype(float))
+    if method == "map":
+        assert np.all(W[:, 0] == 1.0)
+    u = np.stack([res.extra[c] for c in ("weak_wx", "weak_wy", "weak_wz", "weak_vx", "weak_vy", "weak_vz")], 1)
+    np.testing.assert_allclose(np.linalg.norm(u, axis=1), 1.0, rtol=1e-9)
+    assert np.all(res.extra["weak_sigma"] > 0)
 
 
 def test_track_with_window_disable_and_noise_file(runs: dict[str, Path], tmp_path: Path) -> None:

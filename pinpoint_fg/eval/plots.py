@@ -12,6 +12,7 @@ pyplot's global state, so figures can be drawn from any thread or process.
 * :func:`particle_cloud` — particle sets of one frame in the scaled tangent space at the MAP
   (1 mm, 5°), projected onto their two principal directions, with the two GMM components'
   2-sigma ellipses, the MAP and the truth (Fig. 6).
+* :func:`mode_weights_over_time` — the sorted mode weights of one result per frame, stacked.
 * :func:`ablation_bars` — relative change of mean translation and rotation error of every
   ablation against the full model (Fig. 5).
 """
@@ -281,4 +282,42 @@ def ablation_bars(
     ax.grid(axis="y", alpha=0.3)
     ax.set_title(title, fontsize=10)
     fig.subplots_adjust(bottom=0.3)
+    return _save(fig, path)
+
+
+def mode_weights_over_time(t_s: np.ndarray, weights: np.ndarray, title: str, path: Path,
+                           threshold: float = 0.1) -> Path:
+    """Stacked per-frame sorted mode weights (F, K) over time (NaN rows: no modes, left blank).
+
+    The bottom band is the dominant mode. The second mode's weight is also drawn as a black line,
+    with the modes verdict's ``threshold`` dashed: frames where the line reaches it are bimodal.
+    """
+    t = np.asarray(t_s, dtype=float)
+    W = np.asarray(weights, dtype=float)
+    fig = Figure(figsize=(9.0, 3.2))
+    ax = fig.add_subplot(1, 1, 1)
+    ok = np.isfinite(W[:, 0])
+    Wm = np.where(ok[:, None], W, np.nan)
+    bottom = np.zeros(len(t))
+    colours = ("#3b75af", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b")
+    for k in range(W.shape[1]):
+        top = bottom + np.nan_to_num(Wm[:, k])
+        ax.fill_between(t, np.where(ok, bottom, np.nan), np.where(ok, top, np.nan), step="mid", linewidth=0,
+                        color=colours[k % len(colours)], alpha=0.8, label=f"mode {k + 1}")
+        bottom = top
+    if W.shape[1] > 1:
+        ax.step(t, np.where(ok, W[:, 1], np.nan), where="mid", color="black", linewidth=1.0,
+                label="second mode's weight")
+    ax.axhline(threshold, color="black", linestyle="--", linewidth=0.8, label=f"bimodal at >= {threshold:g}")
+    ax.set_ylim(0.0, 1.0)
+    ax.set_ylabel("mode weight", fontsize=9)
+    ax.set_xlabel("time (s)", fontsize=9)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, loc="center left", ncol=W.shape[1] + 2, framealpha=0.9)
+    ax.grid(alpha=0.3)
+    lo, hi = (float(t.min()), float(t.max())) if t.size else (0.0, 1.0)
+    if hi <= lo:
+        lo, hi = lo - 0.5, hi + 0.5
+    ax.set_xlim(lo, hi)
+    fig.tight_layout()
     return _save(fig, path)

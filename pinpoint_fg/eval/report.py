@@ -16,7 +16,12 @@ truth:
   false-bimodal rate, ``bimodal_clear_rate``);
 * the accuracy floor (per-frame MAP solved from the truth with the result's own likelihood:
   its switches and noise file) and the method's mean error as a multiple of it;
-* occlusion breakdown of the mean errors (``none`` / ``partial`` / ``heavy``).
+* occlusion breakdown of the mean errors (``none`` / ``partial`` / ``heavy``);
+* posterior modes (:mod:`pinpoint_fg.eval.modes`): the share of frames the modes verdict calls
+  bimodal (``bimodal_modes_share``), the truth kept by some mode / some particle, and — against a
+  reference multi-hypothesis (MHT) result of the same recording, given with ``reference`` or found
+  among the evaluated results (method ``mht``) — the bimodal rate of both verdicts on the frames
+  the reference calls multimodal vs single-mode.
 
 The ΔNLL labels and the floor depend on the recording and the frame likelihood only (the
 likelihood switches and the noise, not the method), so they are computed once per
@@ -25,7 +30,8 @@ likelihood switches and the noise, not the method), so they are computed once pe
 Files written to ``out``: ``summary.csv`` (one row per result), ``tables.md`` (Table II shaped
 like the paper's; Table III when results carry ablation settings; a multimodality table), and
 PNG figures (:mod:`pinpoint_fg.eval.plots`): ``errors.png``, ``error_time_<result>.png``,
-``particle_cloud_<recording>.png``, ``ablation_<recording>.png``.
+``particle_cloud_<recording>.png``, ``ablation_<recording>.png``, ``modes_time_<recording>_<result>.png``
+(mode weights over time, for results with modes).
 """
 
 from __future__ import annotations
@@ -45,8 +51,9 @@ from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
 from pinpoint_fg.eval.bimodality import assess_bimodality, systematic_resample, tangent_at_map
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
+from pinpoint_fg.eval.modes import ResultModes, modes_of_result, reference_rates, truth_kept
 from pinpoint_fg.io.recording import Recording, read_recording
-from pinpoint_fg.io.result import Result, expand_result_dirs, read_result
+from pinpoint_fg.io.result import MODES_CSV, Result, expand_result_dirs, read_result
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 
@@ -76,6 +83,9 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "trans_q95_mm", "rot_q95_deg", "nlls_trans", "nlls_rot", "is_trans", "is_rot",
     "bimodal_share", "truth_in_dominant_share", "bimodal_frames",
     "ambiguous_frames", "clear_frames", "bimodal_ambiguous_rate", "bimodal_clear_rate",
+    "bimodal_modes_share", "truth_kept_modes_share", "truth_kept_particles_share", "reference",
+    "ref_multimodal_frames", "ref_single_frames", "bimodal_ref_multi_rate", "bimodal_ref_single_rate",
+    "bimodal_modes_ref_multi_rate", "bimodal_modes_ref_single_rate",
     "floor_trans_mm", "floor_rot_deg", "trans_floor_multiple", "rot_floor_multiple",
     "trans_mm_none", "trans_mm_partial", "trans_mm_heavy", "rot_deg_none", "rot_deg_partial", "rot_deg_heavy",
     "latency_median_ms", "latency_p95_ms",
@@ -172,6 +182,8 @@ class ResultEvaluation:
     """(F,) occlusion labels (None where unknown)."""
     row: dict = field(default_factory=dict)
     """The summary.csv row."""
+    modes: ResultModes | None = None
+    """The result's posterior modes (weights over time, peaks), None when not computed."""
 
 
 def _recording_for(res: Result, given: Recording | None, cache: dict[Path, Recording]) -> Recording:
@@ -242,8 +254,13 @@ def _mean(x: np.ndarray) -> float:
     return float(np.mean(x)) if x.size else float("nan")
 
 
+#: A reference for the modes rates: (result path, frames (R,), sorted mode weights (R, K)).
+Reference = tuple[str, np.ndarray, np.ndarray]
+
+
 def _evaluate_one(
-    res: Result, recording: Recording, amb: RecordingAmbiguity, variant: str, label: str
+    res: Result, recording: Recording, amb: RecordingAmbiguity, variant: str, label: str,
+    modes: ResultModes | None = None, reference: Reference | None = None,
 ) -> ResultEvaluation:
     idx = _rows_in_recording(res, recording)
     F = len(res)
@@ -294,13 +311,26 @@ def _evaluate_one(
     for lab in ("none", "partial", "heavy"):
         row[f"trans_mm_{lab}"] = by_t.get(lab, float("nan"))
         row[f"rot_deg_{lab}"] = by_r.get(lab, float("nan"))
+    modes = modes if modes is not None else modes_of_result(res)
+    hm = modes.has_modes
+    row["bimodal_modes_share"] = float(np.mean(modes.bimodal[hm])) if hm.any() else float("nan")
+    row.update(truth_kept(res, modes, T_gt, has_gt))
+    if reference is not None:
+        row["reference"] = reference[0]
+        row.update(reference_rates(res.frame, bimodal, assessed, modes.bimodal, hm, reference[1], reference[2]))
+    else:
+        row["reference"] = ""
+        row.update({"ref_multimodal_frames": 0, "ref_single_frames": 0})
+        for k in ("bimodal_ref_multi_rate", "bimodal_ref_single_rate", "bimodal_modes_ref_multi_rate",
+                  "bimodal_modes_ref_single_rate"):
+            row[k] = float("nan")
     lat = res.latency_ms[np.isfinite(res.latency_ms)]
     row["latency_median_ms"] = float(np.median(lat)) if lat.size else float("nan")
     row["latency_p95_ms"] = float(np.percentile(lat, 95)) if lat.size else float("nan")
     return ResultEvaluation(
         result=res, recording=recording, method=res.method, variant=variant, label=label, T_gt=T_gt,
         has_gt=has_gt, errors=errors, bimodal=bimodal, assessed=assessed, ashman_d=ashman, labels=labels,
-        floor_errors=floor, occlusion=occlusion, row=row,
+        floor_errors=floor, occlusion=occlusion, row=row, modes=modes,
     )
 
 
@@ -360,6 +390,21 @@ def table_multimodal(evals: Sequence[ResultEvaluation]) -> str:
     ] for ev in evals]
     header = ("Method", "Recording", "Bimodal (all frames)", "Truth in dominant mode", "Ambiguous frames",
               "Bimodal on ambiguous (sensitivity)", "Clear frames", "Bimodal on clear (false)")
+    return _md_table(header, rows)
+
+
+def table_modes(evals: Sequence[ResultEvaluation]) -> str:
+    """Markdown table of the modes numbers: both verdicts, truth kept, rates against the reference."""
+    rows = [[
+        ev.label, ev.row["recording"], _pct(ev.row["bimodal_share"]), _pct(ev.row["bimodal_modes_share"]),
+        _pct(ev.row["truth_kept_modes_share"]), _pct(ev.row["truth_kept_particles_share"]),
+        str(ev.row["ref_multimodal_frames"]), _pct(ev.row["bimodal_ref_multi_rate"]),
+        _pct(ev.row["bimodal_modes_ref_multi_rate"]), str(ev.row["ref_single_frames"]),
+        _pct(ev.row["bimodal_ref_single_rate"]), _pct(ev.row["bimodal_modes_ref_single_rate"]),
+    ] for ev in evals]
+    header = ("Method", "Recording", "Bimodal GMM", "Bimodal modes", "Truth kept (modes)",
+              "Truth kept (particles)", "Ref. multimodal frames", "GMM on multi", "Modes on multi",
+              "Ref. single frames", "GMM on single", "Modes on single")
     return _md_table(header, rows)
 
 
@@ -426,6 +471,19 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
             f"{rec}{'' if var == 'full' else ' ' + var}: {t:.2f} mm / {r:.1f} deg"
             for (rec, var), (t, r) in floors.items()
         ))
+    if any(ev.row.get("reference") for ev in evals) or any(np.isfinite(ev.row["bimodal_modes_share"])
+                                                         for ev in evals):
+        lines += ["", "modes (second mode >= 0.1); rates on frames the reference MHT calls multimodal / single-mode:"]
+        for ev in evals:
+            r = ev.row
+            lines.append(
+                f"  {r['recording']}  {ev.label}: bimodal GMM {_pct(r['bimodal_share'])}, modes "
+                f"{_pct(r['bimodal_modes_share'])}; truth kept modes {_pct(r['truth_kept_modes_share'])}, "
+                f"particles {_pct(r['truth_kept_particles_share'])}; vs reference: GMM "
+                f"{_pct(r['bimodal_ref_multi_rate'])} / {_pct(r['bimodal_ref_single_rate'])}, modes "
+                f"{_pct(r['bimodal_modes_ref_multi_rate'])} / {_pct(r['bimodal_modes_ref_single_rate'])} "
+                f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)"
+            )
     lines.append("bimodal = raw share; on ambig./on clear = bimodal rate on frames whose second circle pose "
                  "is within 2.3 nats / beyond 10 nats of the truth's (ΔNLL)")
     return "\n".join(lines)
@@ -496,6 +554,12 @@ def _figures(evals: Sequence[ResultEvaluation], out: Path) -> list[Path]:
             floor_trans_mm=1e3 * ev.floor_errors.trans_m, floor_rot_deg=np.degrees(ev.floor_errors.rot_rad),
         ))
     paths += _cloud_figure(evals, out)
+    for ev in evals:
+        if ev.modes is not None and ev.modes.has_modes.any():
+            paths.append(plots.mode_weights_over_time(
+                ev.result.t_s, ev.modes.weights, f"mode weights: {ev.label} on {ev.recording.info.name}",
+                out / f"modes_time_{_slug(ev.recording.info.name)}_{_slug(ev.label)}.png",
+            ))
     for rec_name, evs in _ablation_groups(evals).items():
         names = [_variant_title(ev.variant) for ev in evs]
         ref = next((i for i, ev in enumerate(evs) if ev.variant == "full"), None)
@@ -550,6 +614,7 @@ def evaluate_results(
     figures: bool = True,
     config: AmbiguityConfig | None = None,
     progress: Callable[[str], None] | None = None,
+    reference: Path | str | None = None,
 ) -> EvaluationReport:
     """Evaluate result directories (module docstring); returns everything computed.
 
@@ -557,6 +622,9 @@ def evaluate_results(
     (:func:`~pinpoint_fg.io.result.expand_result_dirs`). ``ambiguity=False`` skips the ΔNLL labels
     (sensitivity / false-bimodal rates become NaN) but still computes the accuracy floor.
     ``progress(message)`` is called at each stage when given.
+    ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
+    bimodal verdicts of the results of the same recording; without it, the first ``mht`` result of
+    each recording among ``results`` is used.
     """
     results = expand_result_dirs(results)
     if not results:
@@ -589,9 +657,24 @@ def evaluate_results(
                 rec, model, config or AmbiguityConfig(), alternatives=ambiguity, frames=needed[key]
             )
 
+    say("modes")
+    modes = [modes_of_result(res) for res, _, _, _ in loaded]
+    refs: dict[str, Reference] = {}
+    if reference is not None:
+        ref_res = read_result(reference)
+        if not (ref_res.root / MODES_CSV).exists():
+            raise InputError("the reference has no modes.csv (give a multi-hypothesis result)",
+                             file=ref_res.root / MODES_CSV)
+        rm = modes_of_result(ref_res)
+        refs[str(ref_res.info["recording_name"])] = (str(ref_res.root), ref_res.frame, rm.weights)
+    else:
+        for (res, rec, _, _), m in zip(loaded, modes, strict=True):
+            if res.method == "mht" and m.source == "modes.csv" and rec.info.name not in refs:
+                refs[rec.info.name] = (str(res.root), res.frame, m.weights)
+
     names: dict[str, int] = {}
     evals = []
-    for res, rec, _, key in loaded:
+    for (res, rec, _, key), res_modes in zip(loaded, modes, strict=True):
         disabled = _disabled_of(res)
         variant = variant_name(res.method, disabled)
         label = res.method if variant in ("full", "svgd") else f"{res.method} {variant}"
@@ -603,11 +686,12 @@ def evaluate_results(
         if names[str(tag)] > 1:
             label += f" #{names[str(tag)]}"
         say(f"metrics: {label} on {rec.info.name}")
-        evals.append(_evaluate_one(res, rec, analyses[key], variant, label))
+        evals.append(_evaluate_one(res, rec, analyses[key], variant, label, res_modes, refs.get(rec.info.name)))
 
     files = [_write_summary(evals, out / "summary.csv")]
     t2, t3, tm = table_ii(evals), table_iii(evals), table_multimodal(evals)
-    md = ["# Evaluation", "", "## Tracking comparison (Table II)", "", t2, "", "## Multimodality", "", tm]
+    md = ["# Evaluation", "", "## Tracking comparison (Table II)", "", t2, "", "## Multimodality", "", tm,
+          "", "## Posterior modes", "", table_modes(evals)]
     if t3:
         md += ["", "## Ablations (Table III)", "", t3]
     (out / "tables.md").write_text("\n".join(md) + "\n", encoding="utf-8")
@@ -619,6 +703,7 @@ def evaluate_results(
     return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)
 
 
-def evaluate(results: list[Path], recording: Path | None = None, out: Path = Path("evaluation")) -> str:
+def evaluate(results: list[Path], recording: Path | None = None, out: Path = Path("evaluation"),
+             reference: Path | None = None) -> str:
     """Evaluate results, write summary.csv, tables.md and figures to ``out``; return the printable summary."""
-    return evaluate_results(results, recording, out).text
+    return evaluate_results(results, recording, out, reference=reference).text

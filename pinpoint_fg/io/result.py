@@ -8,6 +8,7 @@ A result is a directory::
       particles.npz      the particle set of every frame (np.load(allow_pickle=False))
       trajectory.tum     "t_s x y z qx qy qz qw" per frame (MAP pose)
       smoothed.csv       with a window L > 1: the fixed-lag smoothed pose per frame
+      modes.csv          when the estimates carry modes: per frame up to 4 modes (pose, weight, covariance)
       particles.journal  only while writing / after a crash: append-only copy of the particles
 
 ``result.json`` keys (all required by :func:`read_result`; more keys are allowed):
@@ -69,6 +70,7 @@ from pinpoint_fg.io.recording import (
     _json_shown,
     _shown,
 )
+from pinpoint_fg.posterior_modes import Mode
 
 RESULT_FORMAT = "pinpoint-result"
 RESULT_VERSION = 1
@@ -79,6 +81,7 @@ PARTICLES_NPZ = "particles.npz"
 TRAJECTORY_TUM = "trajectory.tum"
 SMOOTHED_CSV = "smoothed.csv"
 PARTICLES_JOURNAL = "particles.journal"
+MODES_CSV = "modes.csv"
 
 POSE_COLUMNS = ("x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")
 #: The columns of estimates.csv, in order; extra columns follow.
@@ -87,6 +90,16 @@ ESTIMATE_COLUMNS = (
 )
 #: The columns of smoothed.csv.
 SMOOTHED_COLUMNS = ("frame", "t_s", *POSE_COLUMNS)
+
+#: Most modes a frame may have in modes.csv.
+MAX_MODES = 4
+#: The 21 upper-triangle covariance columns ``cov_ij`` (0 <= i <= j <= 5) of modes.csv, row by row.
+COV_COLUMNS = tuple(f"cov_{i}{j}" for i in range(6) for j in range(i, 6))
+#: The columns of modes.csv.
+MODE_COLUMNS = ("frame", "mode", "weight", *POSE_COLUMNS, *COV_COLUMNS)
+#: Per frame, the mode weights must sum to 1 within this.
+MODE_WEIGHT_SUM_TOL = 1e-6
+_IU = np.triu_indices(6)
 
 _JOURNAL_MAGIC = b"PPFGJRN1"
 _JOURNAL_HEADER_BYTES = 32  # magic (8) + N (int64) + weighted (int64) + reserved (int64)
@@ -134,6 +147,8 @@ class FrameEstimate:
     """Fixed-lag estimate ``(frame, t_s, cam_T_needle (4, 4))`` of frame k - L + 1, when available."""
     extra: dict[str, float] = field(default_factory=dict)
     """More numeric columns for estimates.csv (e.g. ``{"reseeded": 1.0}``)."""
+    modes: tuple[Mode, ...] | None = None
+    """Posterior modes of the frame (written to modes.csv, dominant first), None: no modes.csv rows."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -252,6 +267,27 @@ def _scalar(name: str, v: Any, allow_nan: bool) -> float:
     return x
 
 
+def _check_modes(where: str, modes: Any) -> tuple[Mode, ...]:
+    """Validated modes, sorted by decreasing weight (stable); ``ValueError`` naming ``where`` otherwise."""
+    modes = tuple(modes)
+    if not 1 <= len(modes) <= MAX_MODES:
+        raise ValueError(f"{where}: modes must hold 1 to {MAX_MODES} modes, got {len(modes)}")
+    for k, m in enumerate(modes):
+        _check_pose(f"{where}: mode {k} cam_T_needle", m.cam_T_needle)
+        wk = _scalar(f"{where}: mode {k} weight", m.weight, allow_nan=False)
+        if not 0.0 <= wk <= 1.0:
+            raise ValueError(f"{where}: mode {k} weight must lie in [0, 1], got {wk!r}")
+        C = np.asarray(m.cov_xi, dtype=float)
+        if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+            raise ValueError(f"{where}: mode {k} cov_xi must be a finite (6, 6) array")
+        if np.max(np.abs(C - C.T)) > 1e-9 * max(float(np.max(np.abs(C))), 1e-300):
+            raise ValueError(f"{where}: mode {k} cov_xi is not symmetric")
+    total = math.fsum(float(m.weight) for m in modes)
+    if abs(total - 1.0) > MODE_WEIGHT_SUM_TOL:
+        raise ValueError(f"{where}: mode weights sum to {total!r}, not 1 (tolerance {MODE_WEIGHT_SUM_TOL:g})")
+    return tuple(sorted(modes, key=lambda m: -float(m.weight)))
+
+
 class ResultWriter:
     """Writes a v1 result frame by frame; a context manager (see the module docstring for the files).
 
@@ -261,7 +297,10 @@ class ResultWriter:
     one, its smoothed row. particles.npz is rewritten atomically after every frame while its
     arrays are smaller than ``npz_large_bytes``, afterwards at most every ``npz_min_interval_s``
     seconds, and always on close. N (particles) is fixed for a run; a change raises ValueError.
-    Existing result files in ``out_dir`` are replaced.
+    Existing result files in ``out_dir`` are replaced. A frame that carries ``modes`` also gets its
+    rows in modes.csv (opened at the first such frame, flushed per frame; ``frame, mode, weight``,
+    the peak pose, the 21 upper-triangle ``cov_ij``): 1 to :data:`MAX_MODES` modes, weights in
+    [0, 1] summing to 1 within 1e-6, written by decreasing weight; :func:`read_modes` reads them.
     """
 
     def __init__(
@@ -295,7 +334,7 @@ class ResultWriter:
             "complete": False,
         }
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        for name in (ESTIMATES_CSV, PARTICLES_NPZ, TRAJECTORY_TUM, SMOOTHED_CSV, PARTICLES_JOURNAL):
+        for name in (ESTIMATES_CSV, PARTICLES_NPZ, TRAJECTORY_TUM, SMOOTHED_CSV, PARTICLES_JOURNAL, MODES_CSV):
             (self.out_dir / name).unlink(missing_ok=True)
         self._write_info()
         self._tum = open(self.out_dir / TRAJECTORY_TUM, "w", encoding="utf-8")
@@ -309,6 +348,8 @@ class ResultWriter:
             self._smooth_csv = csv.writer(self._smooth, lineterminator="\n")
             self._smooth_csv.writerow(SMOOTHED_COLUMNS)
             self._smooth.flush()
+        self._modes: Any = None  # modes.csv, opened at the first frame with modes
+        self._modes_csv: Any = None
         self._journal: Any = None
         self._journal_dtype: np.dtype | None = None
         self._n: int | None = None
@@ -402,6 +443,7 @@ class ResultWriter:
             raise ValueError("ResultWriter is closed")
         P, logp, w, T = self._check(est)
         f = int(est.frame)
+        modes = None if est.modes is None else _check_modes(f"frame {f}", est.modes)
         xyz, quat = xyz_quat_from_pose(P)
         if self._n is None:
             self._n = P.shape[0]
@@ -434,8 +476,21 @@ class ResultWriter:
         xyz_t, q = xyz_quat_from_pose(T)
         self._tum.write(" ".join(_cell(v) for v in (est.t_s, *xyz_t, q[1], q[2], q[3], q[0])) + "\n")
         self._tum.flush()
+        if modes is not None:
+            self._write_modes(f, modes)
         if est.smoothed is not None:
             self.write_smoothed(*est.smoothed)
+
+    def _write_modes(self, frame: int, modes: tuple[Mode, ...]) -> None:
+        if self._modes is None:
+            self._modes = open(self.out_dir / MODES_CSV, "w", encoding="utf-8", newline="")
+            self._modes_csv = csv.writer(self._modes, lineterminator="\n")
+            self._modes_csv.writerow(MODE_COLUMNS)
+        for k, m in enumerate(modes):
+            C = np.asarray(m.cov_xi, dtype=float)
+            self._modes_csv.writerow([str(frame), str(k), _cell(m.weight), *_pose_cells(np.asarray(m.cam_T_needle)),
+                                      *(_cell(v) for v in C[_IU])])
+        self._modes.flush()
 
     def write_smoothed(self, frame: int, t_s: float, cam_T_needle: np.ndarray) -> None:
         """Append a smoothed estimate (also for the last L-1 frames when the run ends); flushed."""
@@ -505,7 +560,7 @@ class ResultWriter:
         if self._est is None:
             self._extra_keys = ()
             self._open_estimates()
-        for fh in (self._est, self._tum, self._smooth, self._journal):
+        for fh in (self._est, self._tum, self._smooth, self._journal, self._modes):
             if fh is not None:
                 fh.close()
         self._info["complete"] = stopped is None
@@ -891,3 +946,129 @@ def read_result(out_dir: str | Path) -> Result:
         q95_rot_rad=q95_r, bimodal=bimodal, iterations=iters, latency_ms=lat, extra=extra,
         smoothed=smoothed, particles=particles,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class ModeHistory:
+    """modes.csv read back: one entry per (frame, mode) row, in file order (frame, then mode)."""
+
+    frame: np.ndarray
+    """Frame index of each row ``(M,)``."""
+    mode: np.ndarray
+    """Mode index within its frame ``(M,)``, 0 = heaviest."""
+    weight: np.ndarray
+    """Mode weight ``(M,)``; the modes of a frame sum to 1."""
+    cam_T_needle: np.ndarray
+    """Peak poses ``(M, 4, 4)``."""
+    cov_xi: np.ndarray
+    """Covariances ``(M, 6, 6)`` in GTSAM's chart at the peak, [omega; v], rad / m (symmetric)."""
+
+    @property
+    def frames(self) -> np.ndarray:
+        """The distinct frames that have modes, increasing ``(F',)``."""
+        return np.unique(self.frame)
+
+    def by_frame(self) -> dict[int, tuple[Mode, ...]]:
+        """Frame -> its modes, dominant first."""
+        out: dict[int, list[Mode]] = {}
+        for i, f in enumerate(self.frame):
+            out.setdefault(int(f), []).append(Mode(self.cam_T_needle[i], float(self.weight[i]), self.cov_xi[i]))
+        return {f: tuple(m) for f, m in out.items()}
+
+    def weights_at(self, frames: np.ndarray, k: int = MAX_MODES) -> np.ndarray:
+        """Sorted mode weights ``(F, k)`` of ``frames`` (zero-padded); NaN rows for frames without modes."""
+        frames = np.asarray(frames, dtype=np.int64)
+        W = np.full((len(frames), k), np.nan)
+        pos = {int(f): i for i, f in enumerate(frames)}
+        seen = set()
+        for f, m, w in zip(self.frame, self.mode, self.weight, strict=True):
+            i = pos.get(int(f))
+            if i is None or m >= k:
+                continue
+            if i not in seen:
+                W[i] = 0.0
+                seen.add(i)
+            W[i, int(m)] = w
+        return W
+
+
+def read_modes(out_dir: str | Path) -> ModeHistory:
+    """Read and validate ``modes.csv`` of a result directory; bad content raises :class:`InputError`.
+
+    Checks (each error names file, 1-based data row and column): integer ``frame`` non-decreasing
+    and ``mode`` = 0, 1, ... within a frame (at most :data:`MAX_MODES`), weights finite in [0, 1],
+    non-increasing within a frame and summing to 1 within :data:`MODE_WEIGHT_SUM_TOL`, unit
+    quaternions, finite covariance entries with a positive semi-definite matrix (smallest eigenvalue
+    >= -1e-9 times the largest magnitude). For a result whose writer never closed, a torn last line
+    and a last frame whose rows are incomplete (weights not summing to 1) are dropped.
+    """
+    root = Path(out_dir)
+    path = root / MODES_CSV
+    if not path.exists():
+        raise InputError("file not found", file=path)
+    complete = bool(_read_info(root)["complete"])
+    header, rows = _read_csv_rows(path, MODE_COLUMNS, complete)
+    idx = {c: i for i, c in enumerate(header)}
+    M = len(rows)
+    frame = np.zeros(M, dtype=np.int64)
+    mode = np.zeros(M, dtype=np.int64)
+    weight = np.zeros(M)
+    pose = np.zeros((M, 7))
+    cov = np.zeros((M, 6, 6))
+    for r, cells in enumerate(rows, start=1):
+        for c, arr in (("frame", frame), ("mode", mode)):
+            x = cells[idx[c]]
+            if not _INTEGER.fullmatch(x):
+                raise InputError(f"not a non-negative integer: {x!r}", file=path, row=r, column=c)
+            arr[r - 1] = int(x)
+        f, k = int(frame[r - 1]), int(mode[r - 1])
+        if r > 1 and f < frame[r - 2]:
+            raise InputError(f"frame {f} is smaller than the previous row's frame {frame[r - 2]}",
+                             file=path, row=r, column="frame")
+        want = int(mode[r - 2]) + 1 if r > 1 and f == frame[r - 2] else 0
+        if k != want:
+            raise InputError(f"mode {k} of frame {f}; expected {want} (modes count 0, 1, ... per frame)",
+                             file=path, row=r, column="mode")
+        if k >= MAX_MODES:
+            raise InputError(f"frame {f} has more than {MAX_MODES} modes", file=path, row=r, column="mode")
+        wk = _num(path, r, "weight", cells[idx["weight"]], allow_nan=False)
+        if not 0.0 <= wk <= 1.0:
+            raise InputError(f"weight {wk!r} is outside [0, 1]", file=path, row=r, column="weight")
+        if k > 0 and wk > weight[r - 2]:
+            raise InputError(f"weight {wk!r} exceeds the previous mode's {weight[r - 2]!r} (modes are sorted by "
+                             "decreasing weight)", file=path, row=r, column="weight")
+        weight[r - 1] = wk
+        for j, c in enumerate(POSE_COLUMNS):
+            pose[r - 1, j] = _num(path, r, c, cells[idx[c]], allow_nan=False)
+        norm = float(np.linalg.norm(pose[r - 1, 3:]))
+        if abs(norm - 1.0) > QUAT_NORM_TOL:
+            raise InputError(f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}; it must be 1 within "
+                             f"{QUAT_NORM_TOL:g}", file=path, row=r, column="qw")
+        vals = np.array([_num(path, r, c, cells[idx[c]], allow_nan=False) for c in COV_COLUMNS])
+        C = np.zeros((6, 6))
+        C[_IU] = vals
+        C = C + np.triu(C, 1).T
+        for i in range(6):
+            if C[i, i] < 0:
+                raise InputError(f"variance {C[i, i]!r} is negative", file=path, row=r, column=f"cov_{i}{i}")
+        eig = np.linalg.eigvalsh(C)
+        if eig[0] < -1e-9 * max(float(np.max(np.abs(eig))), 1e-300):
+            raise InputError(f"covariance is not positive semi-definite (smallest eigenvalue {eig[0]:.3g})",
+                             file=path, row=r, column="cov_00")
+        cov[r - 1] = C
+    # per-frame weight sums (the row named is the frame's last row)
+    keep = M
+    ends = [i for i in range(M) if i == M - 1 or frame[i + 1] != frame[i]]
+    start = 0
+    for end in ends:
+        total = math.fsum(weight[start:end + 1])
+        if abs(total - 1.0) > MODE_WEIGHT_SUM_TOL:
+            if not complete and end == M - 1:
+                keep = start  # the writer stopped in the middle of this frame's rows
+                break
+            raise InputError(f"the weights of frame {frame[end]} sum to {total!r}, not 1 (tolerance "
+                             f"{MODE_WEIGHT_SUM_TOL:g})", file=path, row=end + 1, column="weight")
+        start = end + 1
+    T = pose_from_xyz_quat(pose[:keep, :3], pose[:keep, 3:]) if keep else np.zeros((0, 4, 4))
+    return ModeHistory(frame=frame[:keep], mode=mode[:keep], weight=weight[:keep], cam_T_needle=T,
+                       cov_xi=cov[:keep])

@@ -55,7 +55,7 @@ class Estimate:
     extra: dict = field(default_factory=dict)
     """Method-specific per-frame numbers (appended as result columns)."""
     modes: tuple[Mode, ...] | None = None
-    """The posterior's distinct modes (pose, weight, covariance), when the method reports them."""
+    """Posterior modes (multi-hypothesis trackers), dominant first; None when the tracker has none."""
 
 
 #: :func:`implausible` fires when the best hypothesis's root-mean-square whitened residual exceeds this.

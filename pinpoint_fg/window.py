@@ -256,7 +256,7 @@ class Window:
             return self._unary(0, cam_T_newest)[0]
         # exact terms of the newest pose + exact last motion term with x_{L-2} at its conditional optimum
         j = self.size - 1
-        v_new = self.frames[j].nll(cam_T_newest)
+        v_new = self.frames[j].gauss_newton(cam_T_newest)[0]  # memoised: the next linearisation reuses it
         # conditional optimum of x_{L-2} given the move of the newest: linear in the newest's tangent change
         from factors.lie import local
 
@@ -274,7 +274,7 @@ class Window:
         """Current value of the newest pose's own terms plus the last motion term."""
         assert self.poses is not None
         j = self.size - 1
-        v = self.frames[j].nll(self.poses[j])
+        v = self.frames[j].gauss_newton(self.poses[j])[0]  # memoised by the linearisation at these poses
         r, _, _ = res.motion_residual(self.poses[j - 1], self.poses[j], self.deltas[j - 1])
         e = r @ self.delta_W[j - 1].T
         return v + 0.5 * np.sum(e * e, axis=1)

@@ -21,8 +21,9 @@ Per frame (DESIGN.md §Inference):
 3. **Safeguard** — a moved particle whose negative log-posterior rises by more than
    ``collapse_nll`` has its step halved (up to 5 times) and otherwise stays put: repulsion may
    cost a little posterior, never a collapse.
-4. **Early stop** — when the 95th percentile of step sizes is below 0.1 mm and 0.5 deg and the
-   best log-posterior changed by less than 0.02, two iterations in a row (paper §V-B).
+4. **Early stop** — when the 95th percentile of step sizes is below 0.1 mm and 0.5 deg two
+   iterations in a row (paper §V-B without its flat-log-posterior test, which measured nothing
+   useful here: ``SvnSettings.stop_logp``).
 5. **Twin** — the circle ambiguity can *emerge* while tracking (the needle turns through an
    edge-on view) far from every hypothesis, and transport cannot jump there. On frames with a
    backbone, the MAP pose's closed-form twin (:func:`pinpoint_fg.init.twin_pose`: the other
@@ -100,8 +101,12 @@ class SvnSettings:
     """Early stop: 95th percentile of translation steps below this (0.1 mm)."""
     stop_rot_rad: float = np.deg2rad(0.5)
     """Early stop: 95th percentile of rotation steps below this (0.5 deg)."""
-    stop_logp: float = 0.02
-    """Early stop: best log-posterior change below this, twice in a row."""
+    stop_logp: float = float("inf")
+    """Early stop: also require the best log-posterior to change by less than this (inf: steps alone).
+    The paper's 0.02 kept 80-90 % of mask frames at the iteration cap although the steps had fallen
+    below 0.1 mm / 0.5 deg after 3-4 iterations: the best particle's value keeps moving by a few
+    hundredths of a nat as repulsion reshuffles the cloud, which says nothing about convergence of
+    the poses. Stopping on the step sizes alone measured 2.4x faster on mask frames at unchanged accuracy."""
     collapse_nll: float = 10.0
     """Safeguard: largest accepted rise of a particle's negative log-posterior per step."""
     prune_nll: float = 30.0
@@ -206,7 +211,7 @@ class SvnTracker(Tracker):
             tra = np.linalg.norm(delta[:, 3:], axis=1)
             best = -float(np.min(value + self.window.evidence))
             small = np.quantile(tra, 0.95) < s.stop_trans_m and np.quantile(rot, 0.95) < s.stop_rot_rad
-            steady = best_prev is not None and abs(best - best_prev) < s.stop_logp
+            steady = s.stop_logp == float("inf") or (best_prev is not None and abs(best - best_prev) < s.stop_logp)
             quiet = quiet + 1 if (small and steady) else 0
             best_prev = best
             if quiet >= 2:

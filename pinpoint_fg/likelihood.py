@@ -226,7 +226,7 @@ class FrameLikelihood:
         for a in (nll, grad, H):
             a.flags.writeable = False
         self._gn_memo = (key, (nll, grad, H))
-        return nll, grad, H
+        return self._gn_memo[1]
 
     def gtsam_factors(self, key: int) -> list[gtsam.NonlinearFactor]:
         """The same terms as GTSAM factors on ``key``, biases included.

@@ -9,6 +9,7 @@ alike) and records each step's own ``latency_ms``, its iterations, whether the f
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,6 +41,8 @@ class LockstepResult:
     """(F,) True where the frame had backbone pixels."""
     latency_ms: dict[str, np.ndarray] = field(default_factory=dict)
     """Per label, (F,) step latency, milliseconds."""
+    cpu_ms: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per label, (F,) CPU time of this thread during the step, milliseconds (less sensitive to other load)."""
     iterations: dict[str, np.ndarray] = field(default_factory=dict)
     """Per label, (F,) iterations."""
     trans_err_m: dict[str, np.ndarray] = field(default_factory=dict)
@@ -55,6 +58,9 @@ class LockstepResult:
             x = lat[sel]
             out[f"median_ms_{name}"] = float(np.median(x)) if x.size else float("nan")
             out[f"p95_ms_{name}"] = float(np.percentile(x, 95)) if x.size else float("nan")
+        cpu = self.cpu_ms[label]
+        for name, sel in (("all", np.ones_like(self.mask)), ("mask", self.mask), ("nomask", ~self.mask)):
+            out[f"cpu_median_ms_{name}"] = float(np.median(cpu[sel])) if sel.any() else float("nan")
         out["iterations_mean"] = float(np.mean(self.iterations[label]))
         out["iterations_mean_mask"] = float(np.mean(self.iterations[label][self.mask])) if self.mask.any() else 0.0
         for name, sel in (("", np.ones_like(self.mask)), ("_mask", self.mask), ("_nomask", ~self.mask)):
@@ -87,11 +93,14 @@ def lockstep(run: str | Path, specs: list[TrackerSpec], max_frames: int | None =
     for s in specs:
         out.latency_ms[s.label] = np.zeros(n)
         out.iterations[s.label] = np.zeros(n)
+        out.cpu_ms[s.label] = np.zeros(n)
         out.trans_err_m[s.label] = np.full(n, np.nan)
         out.rot_err_rad[s.label] = np.full(n, np.nan)
     for k, (rec, obs) in enumerate(zip(frames, observations, strict=True)):
         for s in specs:
+            c0 = time.thread_time()
             est = trackers[s.label].step(obs)
+            out.cpu_ms[s.label][k] = 1e3 * (time.thread_time() - c0)
             out.latency_ms[s.label][k] = est.latency_ms
             out.iterations[s.label][k] = est.iterations
             out.trans_err_m[s.label][k], out.rot_err_rad[s.label][k] = _errors(est.cam_T_needle, rec.cam_T_needle_gt)

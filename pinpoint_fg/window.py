@@ -33,6 +33,7 @@ recent history (about ``1 / (1 - gamma)`` frames) rather than on the current fra
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -308,6 +309,22 @@ class Window:
         self.frames = self.frames[1:]
         self.deltas = self.deltas[1:]
         self.delta_W = self.delta_W[1:]
+
+    def subset(self, index: np.ndarray | list[int]) -> Window:
+        """A window over hypotheses ``index`` only: copies of their poses, priors and evidence, the same frames.
+
+        Work on a few hypotheses (polishing the MAP, trial poses) then costs what those few cost,
+        not what all N cost; write the result back with ``poses[:, index] = sub.poses``.
+        """
+        assert self.poses is not None and self.prior_mean is not None and self.prior_W is not None
+        index = np.asarray(index)
+        sub = copy.copy(self)
+        sub.poses = self.poses[:, index].copy()
+        sub.prior_mean = self.prior_mean[index].copy()
+        sub.prior_W = self.prior_W[index].copy()
+        sub.evidence = None if self.evidence is None else self.evidence[index].copy()
+        sub.frames, sub.deltas, sub.delta_W = list(self.frames), list(self.deltas), list(self.delta_W)
+        return sub
 
     def resample(self, index: np.ndarray) -> None:
         """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF)."""

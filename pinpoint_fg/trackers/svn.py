@@ -43,10 +43,11 @@ Per frame (DESIGN.md §Inference):
    the same for every particle of one mode however far repulsion has spread them; a particle
    is pruned when that exceeds the best by ``prune_nll`` (relative density e^-30). Genuinely
    ambiguous modes (a few nats apart) are untouched.
-7. **Report** — MAP particle (lowest total cost: evidence + window), first polished by up to
-   ``map_polish_iters`` damped Gauss-Newton steps on its own window (accepted only when its cost
-   drops): repulsion keeps every particle, the best included, off its mode's peak by about the
-   kernel scale, and the reported estimate should be the peak. Then q95 spread and covariance
+7. **Report** — MAP particle (lowest total cost: evidence + window), first polished to
+   convergence by damped Gauss-Newton on its own window (a one-hypothesis
+   :meth:`~pinpoint_fg.window.Window.subset`; steps accepted only when its cost drops; at most
+   ``map_polish_iters``): repulsion keeps every particle, the best included, off its mode's peak
+   by about the kernel scale, and the reported estimate should be the peak. Then q95 spread and covariance
    around it; with L > 1 the smoothed pose of frame k - L + 1. When every hypothesis is
    implausible (the best one's cost far above what the frame's residual count allows) the
    particles are re-seeded from this frame.
@@ -124,8 +125,9 @@ class SvnSettings:
     twin_handicap: float = 10.0
     """Evidence (nats) a new twin starts behind the MAP: it shares the image history but not the
     kinematic one, so it must out-explain the MAP over several frames before it becomes the MAP."""
-    map_polish_iters: int = 3
-    """Damped Gauss-Newton steps applied to the MAP particle after transport (0 disables)."""
+    map_polish_iters: int = 20
+    """At most this many damped Gauss-Newton steps polish the MAP particle after transport (0 disables);
+    it stops earlier at convergence (a step below 1 % of the early-stop thresholds)."""
     jitter_sigma: tuple[float, ...] = (np.deg2rad(1.0),) * 3 + (0.2e-3,) * 3
     """Spread of the copies that replace pruned hypotheses, [omega x3 (rad), v x3 (m)]."""
 
@@ -227,29 +229,38 @@ class SvnTracker(Tracker):
         return iterations, final
 
     def _polish_map(self, total: np.ndarray) -> np.ndarray:
-        """Move the best particle to its mode's peak (damped GN on its window); returns updated costs."""
+        """Move the best particle to its mode's peak (damped GN on its own window); returns updated costs.
+
+        Levenberg-Marquardt on a one-hypothesis :meth:`Window.subset`, so each step costs one
+        particle's evaluation; the trial evaluation is memoised and becomes the next linearisation.
+        Runs to convergence (a step below 1 % of the early-stop thresholds) or ``map_polish_iters``.
+        """
         i = int(np.argmin(total))
+        sub = self.window.subset([i])
+        lin = sub.linearize()
+        value = float(lin.value[0])
         lam = 1e-3
+        moved = False
+        tol = 0.01 * np.array([self.svn.stop_rot_rad, self.svn.stop_trans_m])
         for _ in range(self.svn.map_polish_iters):
-            lin = self.window.linearize()
-            H = lin.hess[i]
+            H = lin.hess[0]
             A = H + lam * np.diag(np.maximum(np.diag(H), 1e-12))
-            step = np.zeros((total.shape[0], 6))
-            step[i] = -np.linalg.solve(A, lin.grad[i])
-            T = self.window.newest
-            trial = T[i:i + 1] @ se3_exp(step[i:i + 1])
-            new = self.window.newest_value(np.concatenate([T[:i], trial, T[i + 1:]]), lin)[i]
-            if np.isfinite(new) and new < lin.value[i]:
-                saved = self.window.poses.copy()
-                self.window.move_newest(step, lin)
-                # older poses of the other particles must not move: restore them
-                keep = np.ones(total.shape[0], dtype=bool)
-                keep[i] = False
-                self.window.poses[:, keep] = saved[:, keep]
-                total[i] = new + self.window.evidence[i]
+            step = -np.linalg.solve(A, lin.grad[0])[None]
+            new = float(sub.newest_value(sub.newest @ se3_exp(step), lin)[0])
+            if np.isfinite(new) and new < value:
+                sub.move_newest(step, lin)
+                lin = sub.linearize()
+                value, moved = new, True
                 lam *= 0.3
+                if np.linalg.norm(step[0, :3]) < tol[0] and np.linalg.norm(step[0, 3:]) < tol[1]:
+                    break
             else:
                 lam *= 10.0
+                if lam > 1e8:
+                    break
+        if moved:
+            self.window.poses[:, i] = sub.poses[:, 0]
+            total[i] = value + self.window.evidence[i]
         return total
 
     def _inject_twin(self, lik: FrameLikelihood) -> bool:

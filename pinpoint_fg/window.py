@@ -96,6 +96,14 @@ class Linearization:
     """(N,) the window's negative log-posterior at the current poses (no elimination)."""
 
 
+    def subset(self, index: np.ndarray | list[int]) -> Linearization:
+        """The same model for hypotheses ``index`` only (matches :meth:`Window.subset`)."""
+        index = np.asarray(index)
+        return Linearization(self.value[index], self.grad[index], self.hess[index],
+                             [a[index] for a in self.cond_inv], [a[index] for a in self.cond_g],
+                             [a[index] for a in self.cond_B], self.window_value[index])
+
+
 class Window:
     """The sliding windows of all hypotheses (see module docstring)."""
 
@@ -173,6 +181,17 @@ class Window:
             self._marginalise_oldest()
 
     def _unary(self, j: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frame j's terms (and, for j = 0, the prior) at poses T: value, gradient, information.
+
+        Memoised on the exact values of T and of the prior (the last call only): the safeguard's
+        trial evaluation of the newest pose is the next linearisation's, bitwise.
+        """
+        key = None
+        if j == 0:
+            key = (self.frames[0], T.tobytes(), self.prior_mean.tobytes(), self.prior_W.tobytes())
+            memo = getattr(self, "_prior_memo", None)
+            if memo is not None and memo[0] == key:
+                return memo[1]
         nll, g, H = self.frames[j].gauss_newton(T)
         if j == 0:
             r, J = res.pose_prior_residual(T, self.prior_mean)
@@ -181,6 +200,9 @@ class Window:
             nll = nll + 0.5 * np.sum(e * e, axis=1)
             g = g + np.einsum("nmi,nm->ni", Jw, e)
             H = H + np.swapaxes(Jw, 1, 2) @ Jw
+            for a in (nll, g, H):
+                a.flags.writeable = False
+            self._prior_memo = (key, (nll, g, H))
         return nll, g, H
 
     def _motion(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -324,6 +346,7 @@ class Window:
         sub.prior_W = self.prior_W[index].copy()
         sub.evidence = None if self.evidence is None else self.evidence[index].copy()
         sub.frames, sub.deltas, sub.delta_W = list(self.frames), list(self.deltas), list(self.delta_W)
+        sub._prior_memo = None
         return sub
 
     def resample(self, index: np.ndarray) -> None:

@@ -127,7 +127,10 @@ class SvnSettings:
     kinematic one, so it must out-explain the MAP over several frames before it becomes the MAP."""
     map_polish_iters: int = 20
     """At most this many damped Gauss-Newton steps polish the MAP particle after transport (0 disables);
-    it stops earlier at convergence (a step below 1 % of the early-stop thresholds)."""
+    it stops earlier at convergence (``polish_decrement``)."""
+    polish_decrement: float = 1e-3
+    """Polish converged when the Gauss-Newton decrement ``1/2 g^T H^-1 g`` (the cost still to gain) is below
+    this many nats: the pose is then within ~0.05 posterior standard deviations of the peak."""
     jitter_sigma: tuple[float, ...] = (np.deg2rad(1.0),) * 3 + (0.2e-3,) * 3
     """Spread of the copies that replace pruned hypotheses, [omega x3 (rad), v x3 (m)]."""
 
@@ -157,6 +160,7 @@ class SvnTracker(Tracker):
         )
         self.window = Window(config.window, noise.process_cov, self.svn.forgetting)
         self._times: list[tuple[int, float]] = []
+        self._lin = None  # the transport's final linearisation (reused by the MAP polish)
 
     @property
     def particles(self) -> np.ndarray:
@@ -219,6 +223,7 @@ class SvnTracker(Tracker):
             if quiet >= 2:
                 break
         lin = self.window.linearize()
+        self._lin = lin
         final = lin.value + self.window.evidence
         # GN-predicted optimum of each particle's local mode (for pruning): c - 1/2 g^T H^-1 g
         S = self._S
@@ -231,33 +236,33 @@ class SvnTracker(Tracker):
     def _polish_map(self, total: np.ndarray) -> np.ndarray:
         """Move the best particle to its mode's peak (damped GN on its own window); returns updated costs.
 
-        Levenberg-Marquardt on a one-hypothesis :meth:`Window.subset`, so each step costs one
-        particle's evaluation; the trial evaluation is memoised and becomes the next linearisation.
-        Runs to convergence (a step below 1 % of the early-stop thresholds) or ``map_polish_iters``.
+        Levenberg-Marquardt on a one-hypothesis :meth:`Window.subset`, starting from the
+        transport's final linearisation (no re-evaluation); each trial evaluation is memoised and
+        becomes the next linearisation, so an accepted step costs one particle's evaluation.
+        Runs to convergence — the Gauss-Newton decrement ``1/2 g^T H^-1 g`` below
+        ``polish_decrement`` nats — or ``map_polish_iters`` steps.
         """
         i = int(np.argmin(total))
         sub = self.window.subset([i])
-        lin = sub.linearize()
+        lin = self._lin.subset([i]) if self._lin is not None else sub.linearize()
         value = float(lin.value[0])
         lam = 1e-3
         moved = False
-        tol = 0.01 * np.array([self.svn.stop_rot_rad, self.svn.stop_trans_m])
         for _ in range(self.svn.map_polish_iters):
-            H = lin.hess[0]
+            H, g = lin.hess[0], lin.grad[0]
+            _, Hinv = floor_hessians(H[None], eps=1e-9)
+            if 0.5 * float(g @ Hinv[0] @ g) < self.svn.polish_decrement:
+                break
             A = H + lam * np.diag(np.maximum(np.diag(H), 1e-12))
-            step = -np.linalg.solve(A, lin.grad[0])[None]
+            step = -np.linalg.solve(A, g)[None]
             new = float(sub.newest_value(sub.newest @ se3_exp(step), lin)[0])
             if np.isfinite(new) and new < value:
                 sub.move_newest(step, lin)
                 lin = sub.linearize()
                 value, moved = new, True
                 lam *= 0.3
-                if np.linalg.norm(step[0, :3]) < tol[0] and np.linalg.norm(step[0, 3:]) < tol[1]:
-                    break
             else:
                 lam *= 10.0
-                if lam > 1e8:
-                    break
         if moved:
             self.window.poses[:, i] = sub.poses[:, 0]
             total[i] = value + self.window.evidence[i]
@@ -341,6 +346,7 @@ class SvnTracker(Tracker):
             else:  # seeding did not explain the frame better: keep the tracked hypotheses
                 self.window.poses, self.window.prior_mean, self.window.prior_W, self.window.evidence = kept
                 self.window.frames, self.window.deltas, self.window.delta_W = kept_frames
+                self._lin = None  # the transport's last linearisation belongs to the discarded seeding
         if self.svn.map_polish_iters > 0:
             value = self._polish_map(value)
         pruned = self._prune(self._mode_value.copy())

@@ -1,16 +1,21 @@
 """Reference implementations kept only to pin the library's fast paths (one implementation in the library).
 
 ``conic_residual_reference`` is the conic kernel as it was before it was restructured for speed
-(one (N, 6, 3, M) product per derivative); ``tests/test_factors_fastpaths.py`` pins
-:func:`factors.residuals.conic_residual` to it.
+(one (N, 6, 3, M) product per derivative); ``stein_step_reference`` (with its helpers) is the
+Stein step before it shared one pairwise-difference pass and replaced its einsums by matrix
+products. ``tests/test_factors_fastpaths.py`` pins the library to them.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from factors.lie import skew
 from factors.residuals import SAMPSON_MAX_PX, as_pose_batch
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.stein import SteinConfig, SteinStep, _check_particles
 
 
 def conic_residual_reference(
@@ -112,3 +117,145 @@ def conic_residual_reference(
     c_g = sc * f * (1.0 - 2.0 * g2 * iden) * iden
     J = Df * c_f[..., None] + dgn * c_g[..., None]
     return r, J
+
+
+def median_bandwidth_reference(xi_white: np.ndarray, floor: float) -> float:
+    """Median-heuristic bandwidth ``h = max(median_{i<j} ||xi_i - xi_j||^2 / log N, floor)``.
+
+    ``xi_white`` (N, d) are already whitened (divided by S). With N = 1 there are no pairs and
+    ``log 1 = 0``: the floor is returned. ``floor`` must be > 0 so that h > 0 always.
+    """
+    xi_white = _check_particles(xi_white, "xi_white")
+    if not (math.isfinite(floor) and floor > 0):
+        raise InputError("bandwidth floor must be finite and > 0", column="bandwidth_floor")
+    n = xi_white.shape[0]
+    if n < 2:
+        return float(floor)
+    diff = xi_white[:, None, :] - xi_white[None, :, :]
+    d2 = np.einsum("ijk,ijk->ij", diff, diff)
+    iu = np.triu_indices(n, k=1)
+    m = float(np.median(d2[iu]))
+    return max(m / math.log(n), float(floor))
+
+
+def kernel_matrix_reference(xi: np.ndarray, scale: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened RBF kernel and its gradient with respect to the first argument.
+
+    ``xi`` (N, d), ``scale`` (d,) = diag(S), ``h`` > 0. Returns
+
+    * ``K`` (N, N): ``K[j, i] = exp(-||S^-1 (xi_i - xi_j)||^2 / (2h))`` (symmetric);
+    * ``gradK`` (N, N, d): ``gradK[j, i] = d k(xi_j, xi_i) / d xi_j
+      = K[j, i] * S^-2 (xi_i - xi_j) / h`` in the UN-whitened coordinates of ``xi``.
+    """
+    xi = np.asarray(xi, dtype=float)
+    scale = np.asarray(scale, dtype=float)
+    diff = xi[None, :, :] - xi[:, None, :]  # diff[j, i] = xi_i - xi_j
+    white = diff / scale
+    d2 = np.einsum("jik,jik->ji", white, white)
+    K = np.exp(-d2 / (2.0 * h))
+    gradK = K[:, :, None] * diff / (scale**2 * h)
+    return K, gradK
+
+
+def floor_hessians_reference(
+    H: np.ndarray,
+    eps: float = 1e-2,
+    fallback: np.ndarray | None = None,
+    min_info_rel: float = 1e-12,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetrise and eigenvalue-floor a batch of information matrices; also return the inverses.
+
+    ``H`` (N, d, d). Each ``0.5 (H_i + H_i^T) = V diag(w) V^T`` gets
+    ``w~ = max(w, eps * w_max)``, so ``H~_i`` is symmetric positive definite with condition
+    number <= 1/eps; negative eigenvalues (an indefinite true Hessian) are raised to the floor.
+
+    A particle with no usable information — ``w_max <= min_info_rel * max(fallback)`` (zero,
+    negative semi-definite or vanishing H) or any non-finite entry — gets ``diag(fallback)``
+    (``fallback`` (d,) > 0, default ones) instead, so the result is always finite and
+    invertible. Returns ``(H~, H~^-1)``, both (N, d, d).
+    """
+    H = np.asarray(H, dtype=float)
+    if H.ndim != 3 or H.shape[1] != H.shape[2]:
+        raise InputError(f"Hessians must have shape (N, d, d), got {H.shape}", column="hess")
+    n, d, _ = H.shape
+    fb = np.ones(d) if fallback is None else np.asarray(fallback, dtype=float)
+    if fb.shape != (d,) or not np.all(np.isfinite(fb)) or np.any(fb <= 0):
+        raise InputError("fallback must be (d,) finite and > 0", column="fallback")
+    finite = np.all(np.isfinite(H), axis=(1, 2))
+    Hs = np.where(finite[:, None, None], H, 0.0)
+    Hs = 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+    w, V = np.linalg.eigh(Hs)  # ascending eigenvalues
+    w_max = w[:, -1]
+    usable = finite & (w_max > min_info_rel * fb.max())
+    w_fl = np.maximum(w, eps * w_max[:, None])
+    # Unusable rows: replace by the fallback diagonal (eigenvectors = identity).
+    w_fl = np.where(usable[:, None], w_fl, fb[None, :])
+    V = np.where(usable[:, None, None], V, np.eye(d)[None, :, :])
+    H_fl = np.einsum("nik,nk,njk->nij", V, w_fl, V)
+    H_inv = np.einsum("nik,nk,njk->nij", V, 1.0 / w_fl, V)
+    return H_fl, H_inv
+
+
+def stein_step_reference(
+    xi: np.ndarray,
+    grad_logp: np.ndarray,
+    hess: np.ndarray | None,
+    config: SteinConfig,
+) -> SteinStep:
+    """One (preconditioned) Stein variational step for all particles.
+
+    ``xi`` (N, d) particles in one chart, ``grad_logp`` (N, d) gradient of the log-posterior at
+    each particle, ``hess`` (N, d, d) information (e.g. Gauss-Newton ``J^T J`` of the NEGATIVE
+    log-posterior; ignored and may be None when ``preconditioner == "none"``). See the module
+    docstring for the update formulas, the normaliser and the Hessian floor.
+    """
+    xi = _check_particles(xi)
+    n, d = xi.shape
+    g = np.asarray(grad_logp, dtype=float)
+    if g.shape != (n, d):
+        raise InputError(f"grad_logp must have shape {(n, d)}, got {g.shape}", column="grad_logp")
+    if len(config.scale) != d:
+        raise InputError(f"config.scale has {len(config.scale)} entries, particles have d={d}",
+                         column="scale")
+    # A non-finite gradient carries no direction: zero it (the repulsion still acts).
+    g = np.where(np.isfinite(g), g, 0.0)
+
+    S = config.kernel_scale
+    h = median_bandwidth_reference(xi / S, config.bandwidth_floor)
+    K, gradK = kernel_matrix_reference(xi, S, h)
+    c = K.sum(axis=0) if config.normalise == "kernel-sum" else np.full(n, float(n))
+    repulsion = gradK.sum(axis=0)  # (N, d): sum_j grad_{xi_j} k(xi_j, xi_i)
+    phi = (K.T @ g + repulsion) / c[:, None]
+
+    if config.preconditioner == "none":
+        return SteinStep(step=config.step_size * phi, bandwidth=h, kernel=K, velocity=phi)
+
+    if hess is None:
+        raise InputError("hess is required for the Newton preconditioners", column="hess")
+    hess = np.asarray(hess, dtype=float)
+    if hess.shape != (n, d, d):
+        raise InputError(f"hess must have shape {(n, d, d)}, got {hess.shape}", column="hess")
+    eps = config.eig_floor_rel
+    fallback = 1.0 / np.asarray(config.scale, dtype=float) ** 2
+    H_fl, H_inv = floor_hessians_reference(hess, eps, fallback)
+
+    if config.preconditioner == "newton-alg1":
+        nat = np.einsum("jab,jb->ja", H_inv, g)  # H~_j^-1 g_j
+        step = (K.T @ nat + repulsion) / c[:, None]
+        return SteinStep(step=config.step_size * step, bandwidth=h, kernel=K, velocity=phi)
+
+    K2 = K**2
+    if config.hessian == "own":
+        Hbar_inv = H_inv
+    else:
+        if config.hessian == "kernel-weighted":
+            # SVN block: sum_j k_ji^2 H~_j + grad_j k_ji grad_j k_ji^T, normalised by N ("n":
+            # Detommaso et al. exactly) or by sum_j k_ji^2 ("kernel-sum": exact collective step).
+            c2 = K2.sum(axis=0) if config.normalise == "kernel-sum" else np.full(n, float(n))
+            Hbar = (np.einsum("ji,jab->iab", K2, H_fl)
+                    + np.einsum("jia,jib->iab", gradK, gradK)) / c2[:, None, None]
+        else:  # kernel-average
+            Hbar = np.einsum("ji,jab->iab", K, H_fl) / K.sum(axis=0)[:, None, None]
+        _, Hbar_inv = floor_hessians_reference(Hbar, eps, fallback)
+    step = np.einsum("iab,ib->ia", Hbar_inv, phi)
+    return SteinStep(step=config.step_size * step, bandwidth=h, kernel=K, velocity=phi)

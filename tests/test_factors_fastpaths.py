@@ -10,8 +10,9 @@ from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.observation import Observation
+from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
 from tests.poses import KINDS, sample_poses
-from tests.reference_kernels import conic_residual_reference
+from tests.reference_kernels import conic_residual_reference, floor_hessians_reference, stein_step_reference
 
 CAM = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080)
 NEEDLE = NeedleModel()
@@ -83,3 +84,41 @@ def test_gauss_newton_memo_is_bitwise_the_uncached_evaluation() -> None:
     assert not np.array_equal(other[0], first[0])
     assert lik.gauss_newton(poses) is again  # hit: the same arrays
     np.testing.assert_allclose(lik.nll(poses), first[0], rtol=1e-12)
+
+
+@pytest.mark.parametrize("options", [
+    {}, {"normalise": "n"}, {"hessian": "kernel-average"}, {"hessian": "own"},
+    {"preconditioner": "newton-alg1"}, {"preconditioner": "none", "isotropic": True, "step_size": 1e-3},
+])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_stein_step_equals_reference(options: dict, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n, d = 50, 6
+    scale = np.array([0.09] * 3 + [1e-3] * 3)
+    xi = rng.normal(size=(n, d)) * scale * rng.uniform(0.1, 3.0)
+    g = rng.normal(size=(n, d)) / scale
+    A = rng.normal(size=(n, d, d)) / scale[None, :, None]
+    H = np.swapaxes(A, 1, 2) @ A * rng.uniform(0.1, 10.0, size=(n, 1, 1))
+    H[0] = np.diag(1.0 / scale**2) * np.r_[1e-6, 1.0, 1.0, 1.0, 1.0, 1.0]  # ill-conditioned: the floor binds
+    H[1] = 0.0  # no information: the fallback
+    H[2, 0, 0] = np.nan  # non-finite: the fallback
+    g[3] = np.inf  # non-finite gradient: zeroed
+    cfg = SteinConfig(scale=tuple(scale), bandwidth_floor=1e-3, **options)
+    ref = stein_step_reference(xi, g, H, cfg)
+    new = stein_step(xi, g, H, cfg)
+    assert new.bandwidth == pytest.approx(ref.bandwidth, rel=1e-14)
+    np.testing.assert_allclose(new.kernel, ref.kernel, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(new.velocity, ref.velocity, rtol=1e-9, atol=1e-9 * np.abs(ref.velocity).max())
+    err = np.max(np.abs(new.step - ref.step) / scale, axis=1)
+    assert np.all(err < 1e-9 * (1.0 + np.max(np.abs(ref.step) / scale, axis=1)))
+
+
+def test_floor_hessians_equals_reference() -> None:
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(40, 6, 6))
+    H = A @ np.swapaxes(A, 1, 2)
+    H[:10] -= 3.0 * np.eye(6)  # indefinite
+    H[10] = 0.0
+    fb = np.arange(1.0, 7.0)
+    for a, b in zip(floor_hessians(H, 1e-2, fb), floor_hessians_reference(H, 1e-2, fb), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())

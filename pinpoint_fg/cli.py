@@ -108,7 +108,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     from pinpoint_fg.demo import run_benchmark
 
-    run_benchmark(out=args.out, frames=args.frames, seed=args.seed, jobs=args.jobs)
+    frames, grid = (args.frames, args.grid_frames)
+    if args.quick:
+        frames, grid = min(frames, 150), min(grid or frames, 100)
+    run_benchmark(out=args.out, frames=frames, seed=args.seed, jobs=args.jobs, grid_frames=grid)
     return 0
 
 
@@ -174,6 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frames", type=int, default=300)
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")
+    s.add_argument("--grid-frames", type=int, default=150, help="frames of the N x L latency grid")
+    s.add_argument("--quick", action="store_true", help="150 frames per scenario, 100 in the N x L grid")
     s.set_defaults(func=_cmd_benchmark)
     return p
 

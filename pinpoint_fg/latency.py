@@ -105,3 +105,86 @@ def lockstep(run: str | Path, specs: list[TrackerSpec], max_frames: int | None =
             out.iterations[s.label][k] = est.iterations
             out.trans_err_m[s.label][k], out.rot_err_rad[s.label][k] = _errors(est.cam_T_needle, rec.cam_T_needle_gt)
     return out
+
+
+#: Lock-step methods of the latency benchmark (svgd is an ablation with its own iteration count, left out).
+LATENCY_METHODS = ("svn", "pf", "map")
+GRID_PARTICLES = (10, 25, 50, 100)
+GRID_WINDOWS = (1, 3, 5)
+
+
+def latency_tables(runs: dict[str, Path], frames: int | None, grid_run: Path | None, grid_frames: int | None,
+                   track_out: Path | None = None) -> tuple[dict, str]:
+    """The latency benchmark: per scenario, SVN / PF / MAP in lock-step; SVN's cost over N and L; track wall.
+
+    Returns ``(data, text)``: ``data`` is JSON-ready, ``text`` the printed tables. Ratios are
+    always between trackers of the same lock-step run. ``cpu`` columns are this thread's CPU time
+    per step, a cross-check that is less sensitive to other processes sharing the cores.
+    """
+    data: dict = {"scenarios": {}, "grid": [], "track": None}
+    lines = ["latency (lock-step: svn, pf, map stepped in turn on the same frames, one thread)",
+             f"{'scenario':<12} {'method':<6} {'median':>7} {'p95':>7} {'mask med':>8} {'mask p95':>8} "
+             f"{'no-mask':>7} {'cpu med':>7} {'iters':>5} {'mask it':>7} {'vs pf':>6} {'vs map':>6} "
+             f"{'mask p95 vs map':>15} {'trans mm':>8} {'rot deg':>7} {'rot mask':>8}"]
+    for sc, run in runs.items():
+        res = lockstep(run, [TrackerSpec(m, m) for m in LATENCY_METHODS], max_frames=frames)
+        summ = {m: res.summary(m) for m in LATENCY_METHODS}
+        for m, s in summ.items():
+            s["ratio_median_vs_pf"] = s["median_ms_all"] / summ["pf"]["median_ms_all"]
+            s["ratio_median_vs_map"] = s["median_ms_all"] / summ["map"]["median_ms_all"]
+            s["ratio_cpu_median_vs_pf"] = s["cpu_median_ms_all"] / summ["pf"]["cpu_median_ms_all"]
+            s["ratio_cpu_median_vs_map"] = s["cpu_median_ms_all"] / summ["map"]["cpu_median_ms_all"]
+            s["ratio_mask_p95_vs_map"] = s["p95_ms_mask"] / summ["map"]["p95_ms_mask"]
+            lines.append(
+                f"{sc:<12} {m:<6} {s['median_ms_all']:7.1f} {s['p95_ms_all']:7.1f} {s['median_ms_mask']:8.1f} "
+                f"{s['p95_ms_mask']:8.1f} {s['median_ms_nomask']:7.1f} {s['cpu_median_ms_all']:7.1f} "
+                f"{s['iterations_mean']:5.1f} {s['iterations_mean_mask']:7.1f} {s['ratio_median_vs_pf']:6.2f} "
+                f"{s['ratio_median_vs_map']:6.2f} {s['ratio_mask_p95_vs_map']:15.2f} {s['trans_mean_mm']:8.3f} "
+                f"{s['rot_mean_deg']:7.2f} {s['rot_mean_deg_mask']:8.2f}")
+        data["scenarios"][sc] = {"frames": int(res.mask.size), "mask_frames": int(res.mask.sum()), "methods": summ}
+    if grid_run is not None:
+        lines += ["", "SVN cost vs particles N and window L (lock-step, same frames; ms per frame)",
+                  f"{'N':>4} {'L':>2} {'median':>7} {'p95':>7} {'mask med':>8} {'cpu med':>7} {'vs L=1':>6}"]
+        specs = [TrackerSpec(f"svn N={n} L={L}", "svn", n, L) for n in GRID_PARTICLES for L in GRID_WINDOWS]
+        res = lockstep(grid_run, specs, max_frames=grid_frames)
+        for n in GRID_PARTICLES:
+            base = res.summary(f"svn N={n} L=1")["median_ms_all"]
+            for L in GRID_WINDOWS:
+                s = res.summary(f"svn N={n} L={L}")
+                row = {"particles": n, "window": L, **s, "ratio_vs_L1": s["median_ms_all"] / base}
+                data["grid"].append(row)
+                lines.append(f"{n:4d} {L:2d} {s['median_ms_all']:7.1f} {s['p95_ms_all']:7.1f} "
+                             f"{s['median_ms_mask']:8.1f} {s['cpu_median_ms_all']:7.1f} {row['ratio_vs_L1']:6.2f}")
+    if track_out is not None and grid_run is not None:
+        from pinpoint_fg.io.result import read_result
+        from pinpoint_fg.track import track_recording
+
+        t0 = time.perf_counter()
+        track_recording(grid_run, "svn", track_out, progress=False, max_frames=grid_frames)
+        wall = time.perf_counter() - t0
+        step_sum = float(np.sum(read_result(track_out).latency_ms)) / 1e3
+        data["track"] = {"wall_s": wall, "step_sum_s": step_sum, "ratio": wall / step_sum}
+        lines += ["", f"pinpoint-fg track (svn, {Path(grid_run).name}): wall {wall:.2f} s, sum of step latencies "
+                      f"{step_sum:.2f} s, wall / steps = {wall / step_sum:.2f} (reading, verdicts, writing included)"]
+    return data, "\n".join(lines)
+
+
+def plot_grid(grid: list[dict], path: Path) -> None:
+    """Median SVN latency vs N, one line per window length L."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for L in sorted({r["window"] for r in grid}):
+        rows = sorted((r for r in grid if r["window"] == L), key=lambda r: r["particles"])
+        ax.plot([r["particles"] for r in rows], [r["median_ms_all"] for r in rows], "o-", label=f"L = {L}")
+    ax.set_xlabel("particles N")
+    ax.set_ylabel("median ms per frame")
+    ax.set_title("SVN latency vs N and window L")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

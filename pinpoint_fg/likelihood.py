@@ -211,12 +211,12 @@ class FrameLikelihood:
 
         The last result is memoised on the exact pose values (their bytes): a tracker that
         evaluates trial poses (a safeguard) and then linearises at the accepted ones gets the
-        second call free, bitwise identical. The returned arrays are read-only.
+        second call free, bitwise identical. The memo is kept read-only; callers get copies.
         """
         T = res.as_pose_batch(cam_T_needle)
         key = T.tobytes()
         if self._gn_memo is not None and self._gn_memo[0] == key:
-            return self._gn_memo[1]
+            return tuple(a.copy() for a in self._gn_memo[1])
         e, J = self.whitened(T)
         c, cg, cH = self.cheirality(T)
         nll = 0.5 * np.sum(e * e, axis=1) + c
@@ -226,7 +226,7 @@ class FrameLikelihood:
         for a in (nll, grad, H):
             a.flags.writeable = False
         self._gn_memo = (key, (nll, grad, H))
-        return self._gn_memo[1]
+        return nll.copy(), grad.copy(), H.copy()
 
     def gtsam_factors(self, key: int) -> list[gtsam.NonlinearFactor]:
         """The same terms as GTSAM factors on ``key``, biases included.

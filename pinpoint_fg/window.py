@@ -180,6 +180,10 @@ class Window:
         while self.size > self.length:
             self._marginalise_oldest()
 
+    def _prior_key(self, T: np.ndarray) -> tuple:
+        """Memo key of the oldest frame's terms at poses T: the frame object and the exact values."""
+        return (self.frames[0], np.ascontiguousarray(T).tobytes(), self.prior_mean.tobytes(), self.prior_W.tobytes())
+
     def _unary(self, j: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frame j's terms (and, for j = 0, the prior) at poses T: value, gradient, information.
 
@@ -188,7 +192,7 @@ class Window:
         """
         key = None
         if j == 0:
-            key = (self.frames[0], T.tobytes(), self.prior_mean.tobytes(), self.prior_W.tobytes())
+            key = self._prior_key(T)
             memo = getattr(self, "_prior_memo", None)
             if memo is not None and memo[0] == key:
                 return memo[1]
@@ -348,6 +352,31 @@ class Window:
         sub.frames, sub.deltas, sub.delta_W = list(self.frames), list(self.deltas), list(self.delta_W)
         sub._prior_memo = None
         return sub
+
+    def adopt(self, sub: Window, index: np.ndarray | list[int]) -> None:
+        """Write a :meth:`subset`'s poses back to hypotheses ``index``, keeping the prior-term memo valid.
+
+        The memo of the oldest frame's terms (all hypotheses) gets the subset's rows where the
+        subset holds them for its current poses, so the next marginalisation need not
+        re-evaluate the hypotheses that did not move (equal to a fresh evaluation to round-off:
+        the subset's rows were computed in a smaller batch).
+        """
+        assert self.poses is not None and sub.poses is not None
+        index = np.asarray(index)
+        memo, sub_memo = getattr(self, "_prior_memo", None), getattr(sub, "_prior_memo", None)
+        valid = (memo is not None and sub_memo is not None and memo[0] == self._prior_key(self.poses[0])
+                 and sub_memo[0] == sub._prior_key(sub.poses[0]))
+        self.poses[:, index] = sub.poses
+        if not valid:
+            self._prior_memo = None
+            return
+        merged = []
+        for full, part in zip(memo[1], sub_memo[1], strict=True):
+            a = full.copy()
+            a[index] = part
+            a.flags.writeable = False
+            merged.append(a)
+        self._prior_memo = (self._prior_key(self.poses[0]), tuple(merged))
 
     def resample(self, index: np.ndarray) -> None:
         """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF)."""

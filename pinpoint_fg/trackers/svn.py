@@ -264,7 +264,7 @@ class SvnTracker(Tracker):
             else:
                 lam *= 10.0
         if moved:
-            self.window.poses[:, i] = sub.poses[:, 0]
+            self.window.adopt(sub, [i])
             total[i] = value + self.window.evidence[i]
         return total
 
@@ -334,7 +334,8 @@ class SvnTracker(Tracker):
         twinned = self.svn.twin_share > 0 and self._inject_twin(lik)
         first = self.frames_seen < self.svn.first_frames
         iters, value = self._transport(self.svn.iters_first if first else self.svn.iters_later)
-        if implausible(float(lik.nll(self.window.newest[int(np.argmin(value))][None])[0]), lik):
+        # the frame's terms at the current poses: memoised by the transport's last evaluation
+        if implausible(float(lik.gauss_newton(self.window.newest)[0][int(np.argmin(value))]), lik):
             kept = (self.window.poses.copy(), self.window.prior_mean.copy(), self.window.prior_W.copy(),
                     self.window.evidence.copy())
             kept_frames = (list(self.window.frames), list(self.window.deltas), list(self.window.delta_W))

@@ -283,6 +283,9 @@ class Window:
             return self._unary(0, cam_T_newest)[0]
         # exact terms of the newest pose + exact last motion term with x_{L-2} at its conditional optimum
         j = self.size - 1
+        # the remaining older terms: GN value of the eliminated part at d_prev (evaluated first: the
+        # current poses' evaluation is memoised by the linearisation and must not evict the trial's)
+        older = lin.value - self._newest_part_value(lin)
         v_new = self.frames[j].gauss_newton(cam_T_newest)[0]  # memoised: the next linearisation reuses it
         # conditional optimum of x_{L-2} given the move of the newest: linear in the newest's tangent change
         from factors.lie import local
@@ -293,8 +296,6 @@ class Window:
         prev = self.poses[-2] @ se3_exp(dprev)
         r, _, _ = res.motion_residual(prev, cam_T_newest, self.deltas[-1])
         e = r @ self.delta_W[-1].T
-        # the remaining older terms: GN value of the eliminated part at d_prev
-        older = lin.value - self._newest_part_value(lin)
         return v_new + 0.5 * np.sum(e * e, axis=1) + older
 
     def _newest_part_value(self, lin: Linearization) -> np.ndarray:

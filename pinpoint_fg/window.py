@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors import residuals as res
-from factors.lie import se3_exp
+from factors.lie import local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood
 
 #: Random-walk noise per frame when the motion model is off or kinematics are missing:
@@ -94,6 +94,8 @@ class Linearization:
     """Per older pose j: the coupling block H_{j,j+1}, (N, 6, 6)."""
     window_value: np.ndarray
     """(N,) the window's negative log-posterior at the current poses (no elimination)."""
+    newest_part: np.ndarray | None = None
+    """(N,) the newest pose's own terms plus the last motion term at the current poses (L > 1)."""
 
 
     def subset(self, index: np.ndarray | list[int]) -> Linearization:
@@ -101,7 +103,8 @@ class Linearization:
         index = np.asarray(index)
         return Linearization(self.value[index], self.grad[index], self.hess[index],
                              [a[index] for a in self.cond_inv], [a[index] for a in self.cond_g],
-                             [a[index] for a in self.cond_B], self.window_value[index])
+                             [a[index] for a in self.cond_B], self.window_value[index],
+                             None if self.newest_part is None else self.newest_part[index])
 
 
 class Window:
@@ -180,6 +183,13 @@ class Window:
         while self.size > self.length:
             self._marginalise_oldest()
 
+    def _prior_terms(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The marginalisation prior on the oldest pose at poses T: value, gradient, information."""
+        r, J = res.pose_prior_residual(T, self.prior_mean)
+        e = np.einsum("nij,nj->ni", self.prior_W, r)
+        Jw = self.prior_W @ J
+        return 0.5 * np.sum(e * e, axis=1), np.einsum("nmi,nm->ni", Jw, e), np.swapaxes(Jw, 1, 2) @ Jw
+
     def _prior_key(self, T: np.ndarray) -> tuple:
         """Memo key of the oldest frame's terms at poses T: the frame object and the exact values."""
         return (self.frames[0], np.ascontiguousarray(T).tobytes(), self.prior_mean.tobytes(), self.prior_W.tobytes())
@@ -198,12 +208,8 @@ class Window:
                 return memo[1]
         nll, g, H = self.frames[j].gauss_newton(T)
         if j == 0:
-            r, J = res.pose_prior_residual(T, self.prior_mean)
-            e = np.einsum("nij,nj->ni", self.prior_W, r)
-            Jw = self.prior_W @ J
-            nll = nll + 0.5 * np.sum(e * e, axis=1)
-            g = g + np.einsum("nmi,nm->ni", Jw, e)
-            H = H + np.swapaxes(Jw, 1, 2) @ Jw
+            pv, pg, pH = self._prior_terms(T)
+            nll, g, H = nll + pv, g + pg, H + pH
             for a in (nll, g, H):
                 a.flags.writeable = False
             self._prior_memo = (key, (nll, g, H))
@@ -231,8 +237,11 @@ class Window:
             gs.append(g)
             Hs.append(H)
         Bs = []
+        newest_part = vals[-1]
         for j in range(L - 1):
             v, gp, gc, Hpp, Hpc, Hcc = self._motion(j)
+            if j == L - 2:
+                newest_part = newest_part + v
             vals[j] = vals[j] + v
             gs[j] = gs[j] + gp
             gs[j + 1] = gs[j + 1] + gc
@@ -253,7 +262,7 @@ class Window:
             g_run = gs[j + 1] - np.einsum("nij,nj->ni", BT, Hig)
             H_run = Hs[j + 1] - BT @ Hinv @ Bs[j]
         H_run = 0.5 * (H_run + np.swapaxes(H_run, 1, 2))
-        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value)
+        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
 
     def move_newest(self, step: np.ndarray, lin: Linearization) -> None:
         """Retract the newest poses by ``step (N, 6)`` and the older ones by back-substitution.
@@ -285,11 +294,9 @@ class Window:
         j = self.size - 1
         # the remaining older terms: GN value of the eliminated part at d_prev (evaluated first: the
         # current poses' evaluation is memoised by the linearisation and must not evict the trial's)
-        older = lin.value - self._newest_part_value(lin)
+        older = lin.value - (self._newest_part_value(lin) if lin.newest_part is None else lin.newest_part)
         v_new = self.frames[j].gauss_newton(cam_T_newest)[0]  # memoised: the next linearisation reuses it
         # conditional optimum of x_{L-2} given the move of the newest: linear in the newest's tangent change
-        from factors.lie import local
-
         dL = local(self.poses[-1], cam_T_newest)
         rhs = lin.cond_g[-1] + np.einsum("nij,nj->ni", lin.cond_B[-1], dL)
         dprev = -np.einsum("nij,nj->ni", lin.cond_inv[-1], rhs)

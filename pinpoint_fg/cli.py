@@ -67,6 +67,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         disable=args.disable,
         seed=args.seed,
         progress=None,
+        verdict_workers=1,  # bimodality verdicts in a worker process, alongside the tracker
     )
     print(f"wrote {out}")
     return 0

@@ -160,7 +160,7 @@ def latency_tables(runs: dict[str, Path], frames: int | None, grid_run: Path | N
         from pinpoint_fg.track import track_recording
 
         t0 = time.perf_counter()
-        track_recording(grid_run, "svn", track_out, progress=False, max_frames=grid_frames)
+        track_recording(grid_run, "svn", track_out, progress=False, max_frames=grid_frames, verdict_workers=1)
         wall = time.perf_counter() - t0
         step_sum = float(np.sum(read_result(track_out).latency_ms)) / 1e3
         data["track"] = {"wall_s": wall, "step_sum_s": step_sum, "ratio": wall / step_sum}

@@ -144,12 +144,14 @@ def track_recording(
     progress: bool | None = None,
     max_frames: int | None = None,
     max_points: int = 200,
-    verdict_workers: int = 1,
+    verdict_workers: int = 0,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
     ``progress`` None shows a bar only on a terminal. ``max_frames`` stops after that many frames.
-    ``verdict_workers`` processes judge bimodality alongside the tracker (0: inline, same verdicts).
+    ``verdict_workers`` processes judge bimodality alongside the tracker (0: inline, same verdicts;
+    ``pinpoint-fg track`` uses 1; the worker is spawned, so a calling script needs the usual
+    ``if __name__ == "__main__":`` guard).
     """
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None

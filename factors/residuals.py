@@ -26,6 +26,12 @@ MIN_DEPTH_M = 1e-6
 SAMPSON_MAX_PX = 1e8
 
 
+#: Gather of a flattened 3x3 conic (index 9 = 0) into its coefficients on phi = [u^2, 2uv, v^2, 2u, 2v, 1]
+#: for f = x^T C x, g1 = 2 (C x)_1, g2 = 2 (C x)_2 (see :func:`conic_residual`).
+_CONIC_COEF_INDEX = np.array([[0, 1, 4, 2, 5, 8], [9, 9, 9, 0, 1, 2], [9, 9, 9, 1, 4, 5]])
+_CONIC_COEF_MULT = np.array([[1.0] * 6, [1.0] * 5 + [2.0], [1.0] * 5 + [2.0]])
+
+
 def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
     """Promote ``(4, 4)`` to ``(1, 4, 4)``; check the shape and finiteness of a pose batch."""
     T = np.asarray(cam_T_needle, dtype=float)
@@ -127,72 +133,67 @@ def conic_residual(
     pts = np.asarray(points_px, dtype=float)
     N, M = T.shape[0], pts.shape[0]
     R, t = T[:, :3, :3], T[:, :3, 3]
-    h1 = R[:, :, 0] @ K.T
-    h2 = R[:, :, 1] @ K.T
-    h3 = t @ K.T
-    # dh/dxi (N, 3, 6): d(R e_k) = -R [e_k]x omega, dt = R v
     KR = K @ R
-    e = np.eye(3)
-    Dh1 = np.concatenate([-KR @ skew(e[0]), np.zeros((N, 3, 3))], axis=2)
-    Dh2 = np.concatenate([-KR @ skew(e[1]), np.zeros((N, 3, 3))], axis=2)
-    Dh3 = np.concatenate([np.zeros((N, 3, 3)), KR], axis=2)
-    # adjugate rows a1 = h2 x h3, a2 = h3 x h1, a3 = h1 x h2 and their Jacobians
-    a1, a2, a3 = np.cross(h2, h3), np.cross(h3, h1), np.cross(h1, h2)
-    S1, S2, S3 = skew(h1), skew(h2), skew(h3)
-    Da1 = -S3 @ Dh2 + S2 @ Dh3
-    Da2 = -S1 @ Dh3 + S3 @ Dh1
-    Da3 = -S2 @ Dh1 + S1 @ Dh2
-    A = np.stack([a1, a2, a3], axis=1)  # (N, 3, 3)
-    DA = np.stack([Da1, Da2, Da3], axis=1)  # (N, 3, 3, 6): row i, component k, xi
+    h1, h2, h3 = KR[:, :, 0], KR[:, :, 1], t @ K.T
+    # adjugate rows a1 = h2 x h3, a2 = h3 x h1, a3 = h1 x h2
+    A = np.stack([np.cross(h2, h3), np.cross(h3, h1), np.cross(h1, h2)], axis=1)  # (N, 3, 3)
     scale = 1.0 / np.maximum(np.linalg.norm(A, axis=(1, 2)), 1e-300)
     A = A * scale[:, None, None]
-    DA = DA * scale[:, None, None, None]
 
     # Work in centred, scaled pixels x = P xh (P = [[s, 0, cu], [0, s, cv], [0, 0, 1]]) so every term
     # is O(1): f is unchanged, the image gradient scales by s, and s_px = s * f / |gh|.
     centre = pts.mean(axis=0) if M else np.zeros(2)
     sc = max(float(np.sqrt(np.mean(np.sum((pts - centre) ** 2, axis=1)))) if M else 1.0, 1.0)
     P = np.array([[sc, 0.0, centre[0]], [0.0, sc, centre[1]], [0.0, 0.0, 1.0]])
-    xh = np.concatenate([(pts - centre) / sc, np.ones((M, 1))], axis=1)  # (M, 3)
     Q = np.diag([1.0, 1.0, -(float(radius_m) ** 2)])
-    # Ch = P^T A^T Q A P and its derivative per tangent direction (N, 6, 3, 3)
+    # Ch = P^T A^T Q A P (N, 3, 3), normalised (scale invariance again)
     AP = A @ P
     QAP = Q @ AP
     C = np.swapaxes(AP, 1, 2) @ QAP
-    DAd = np.moveaxis(DA, 3, 1) @ P  # (N, 6, 3, 3): [n, d, row i, component k]
-    dC = np.swapaxes(DAd, 2, 3) @ QAP[:, None]
-    dC = dC + np.swapaxes(dC, 2, 3)
-    cn = 1.0 / np.maximum(np.linalg.norm(C, axis=(1, 2)), 1e-300)  # scale invariance again
+    cn = 1.0 / np.maximum(np.linalg.norm(C, axis=(1, 2)), 1e-300)
     C = C * cn[:, None, None]
-    dC = dC * cn[:, None, None, None]
-    xT = xh.T  # (3, M)
-    Cx = C @ xT  # (N, 3, M)
-    f = np.sum(Cx * xT, axis=1)  # (N, M)
-    g = 2.0 * np.swapaxes(Cx[:, :2, :], 1, 2)  # (N, M, 2)
-    if not jacobian:
-        g2 = np.sum(g * g, axis=2)
-        f2d = (f * sc / SAMPSON_MAX_PX) ** 2
-        den = g2 + f2d
-        ok = den > 0
-        return sc * f * np.sqrt(g2) * np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0), None
-    dCx = dC @ xT  # (N, 6, 3, M)
-    Df = np.swapaxes(np.sum(dCx * xT, axis=2), 1, 2)  # (N, M, 6)
-    Dg = 2.0 * np.moveaxis(dCx[:, :, :2, :], (1, 2, 3), (3, 2, 1))  # (N, M, 2, 6)
-    g2 = np.sum(g * g, axis=2)
-    gn = np.sqrt(g2)
+    if jacobian:
+        # dh/dxi (N, 3, 6): d(R e_k) = -R [e_k]x omega, dt = R v
+        e = np.eye(3)
+        zero3 = np.zeros((N, 3, 3))
+        Dh1 = np.concatenate([-KR @ skew(e[0]), zero3], axis=2)
+        Dh2 = np.concatenate([-KR @ skew(e[1]), zero3], axis=2)
+        Dh3 = np.concatenate([zero3, KR], axis=2)
+        S1, S2, S3 = skew(h1), skew(h2), skew(h3)
+        DA = np.stack([-S3 @ Dh2 + S2 @ Dh3, -S1 @ Dh3 + S3 @ Dh1, -S2 @ Dh1 + S1 @ Dh2], axis=1)  # (N, 3, 3, 6)
+        DAd = np.moveaxis(DA * scale[:, None, None, None], 3, 1) @ P  # (N, 6, 3, 3): [n, d, row i, component k]
+        dC = np.swapaxes(DAd, 2, 3) @ QAP[:, None]
+        dC = (dC + np.swapaxes(dC, 2, 3)) * cn[:, None, None, None]
+        Call = np.concatenate([C[:, None], dC], axis=1)  # (N, 7, 3, 3): value and six derivatives
+    else:
+        Call = C[:, None]
+    # x^T C x and the image gradient 2 (C x)_{1:2} are linear in C's six distinct entries: with the
+    # pixel basis phi(x) = [u^2, 2uv, v^2, 2u, 2v, 1], f = c . phi, g1 = (c11, c12, 2 c13) . phi[3:],
+    # g2 = (c12, c22, 2 c23) . phi[3:]. The value and the six derivatives of C become ONE
+    # (N * 7 * 3, 6) @ (6, M) product: f, g1, g2 and their derivatives for every pixel at once.
+    u, v = (pts[:, 0] - centre[0]) / sc, (pts[:, 1] - centre[1]) / sc
+    phi = np.stack([u * u, 2.0 * u * v, v * v, 2.0 * u, 2.0 * v, np.ones(M)], axis=0)  # (6, M)
+    n7 = Call.shape[1]
+    flat = np.concatenate([Call.reshape(N, n7, 9), np.zeros((N, n7, 1))], axis=2)  # index 9 reads 0
+    coef = flat[:, :, _CONIC_COEF_INDEX] * _CONIC_COEF_MULT  # (N, n7, 3, 6)
+    out = (coef.reshape(-1, 6) @ phi).reshape(N, n7, 3, M)
+    f, g1, g2 = out[:, 0, 0], out[:, 0, 1], out[:, 0, 2]  # (N, M)
+    g2s = g1 * g1 + g2 * g2
+    gn = np.sqrt(g2s)
     f2d = (f * sc / SAMPSON_MAX_PX) ** 2
-    den = g2 + f2d
+    den = g2s + f2d
     ok = den > 0
     iden = np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
     r = sc * f * gn * iden
-    # s = sc f |g| / den:  ds = sc [df (|g| - 2 f2d |g| / den) / den + d|g| f (1 - 2 g^2 / den) / den]
-    gdg = g[..., 0, None] * Dg[..., 0, :] + g[..., 1, None] * Dg[..., 1, :]
-    safe_gn = np.where(gn > 0, gn, 1.0)
-    dgn = np.where((gn > 0)[..., None], gdg / safe_gn[..., None], 0.0)
+    if not jacobian:
+        return r, None
+    # s = sc f |g| / den:  ds = sc [df (|g| - 2 f2d |g| / den) / den + d|g| f (1 - 2 g^2 / den) / den],
+    # d|g| = (g1 dg1 + g2 dg2) / |g| (0 where g = 0)
     c_f = sc * gn * (1.0 - 2.0 * f2d * iden) * iden
-    c_g = sc * f * (1.0 - 2.0 * g2 * iden) * iden
-    J = Df * c_f[..., None] + dgn * c_g[..., None]
-    return r, J
+    c_g = sc * f * (1.0 - 2.0 * g2s * iden) * iden
+    q = np.where(gn > 0, c_g / np.where(gn > 0, gn, 1.0), 0.0)
+    J = out[:, 1:, 0] * c_f[:, None] + out[:, 1:, 1] * (g1 * q)[:, None] + out[:, 1:, 2] * (g2 * q)[:, None]
+    return r, np.swapaxes(J, 1, 2)
 
 
 def grasp_position_residual(

@@ -72,6 +72,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=None,
         overwrite=args.overwrite,
+        verdict_workers=1,  # bimodality verdicts in a worker process, alongside the tracker
     )
     print(f"wrote {out}")
     return 0
@@ -139,7 +140,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     from pinpoint_fg.demo import run_benchmark
 
-    run_benchmark(out=args.out, frames=args.frames, seed=args.seed, jobs=args.jobs, overwrite=args.overwrite)
+    frames, grid = (args.frames, args.grid_frames)
+    if args.quick:
+        frames, grid = min(frames, 150), min(grid or frames, 100)
+    run_benchmark(out=args.out, frames=frames, seed=args.seed, jobs=args.jobs, grid_frames=grid,
+                  overwrite=args.overwrite)
     return 0
 
 
@@ -347,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frames", type=int, default=300)
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")
+    s.add_argument("--grid-frames", type=int, default=150, help="frames of the N x L latency grid")
+    s.add_argument("--quick", action="store_true", help="150 frames per scenario, 100 in the N x L grid")
     s.set_defaults(func=_cmd_benchmark)
 
     _add_bag_parsers(sub)

@@ -14,6 +14,7 @@ themselves.
 from __future__ import annotations
 
 import csv
+import json
 import os
 import sys
 import time
@@ -117,12 +118,27 @@ def run_demo(out: Path = Path("demo-output"), frames: int = 240, jobs: int = 2, 
     return out / "report"
 
 
+def _finite_or_none(x: object) -> object:
+    """JSON has no NaN: non-finite floats become null (e.g. mask statistics of a run without masks)."""
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
 def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed: int = 1, jobs: int = 1,
-                  overwrite: bool = False) -> Path:
+                  grid_frames: int | None = None, overwrite: bool = False) -> Path:
     """Every scenario x method on fixed seeds; prints accuracy, spread, bimodality, latency and latency ratios.
 
     Runs sequentially by default (``jobs=1``) so the per-frame latencies are not inflated by the
-    other runs sharing the cores. ``out`` must be new or empty unless ``overwrite``.
+    other runs sharing the cores. Then the latency benchmark (:func:`pinpoint_fg.latency.latency_tables`):
+    SVN, PF and MAP in lock-step per scenario, SVN's cost over N and L on the normal run
+    (``grid_frames`` frames, default all) and ``track``'s wall time against its step latencies;
+    written to ``latency.json``, ``latency.txt`` and ``latency_vs_n_l.png``. ``out`` must be new or
+    empty unless ``overwrite``.
     """
     from pinpoint_fg.eval.report import evaluate_results
     from pinpoint_fg.io.outdir import prepare_output_dir
@@ -163,4 +179,16 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
         w.writerows(rows)
     (out / "benchmark.txt").write_text(text + "\n")
     print(f"\nwrote {path} and {out / 'report'}")
+
+    from pinpoint_fg.latency import latency_tables, plot_grid
+
+    print("\n[benchmark] latency (lock-step, one thread)")
+    env = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    data, lat_text = latency_tables(runs, frames, runs["normal"], grid_frames, track_out=out / "track-svn")
+    print(lat_text)
+    data["command_frames"], data["seed"], data["blas_threads_env"] = frames, seed, env
+    (out / "latency.json").write_text(json.dumps(_finite_or_none(data), indent=1) + "\n")
+    (out / "latency.txt").write_text(lat_text + "\n")
+    plot_grid(data["grid"], out / "latency_vs_n_l.png")
+    print(f"\nwrote {out / 'latency.json'}, {out / 'latency.txt'} and {out / 'latency_vs_n_l.png'}")
     return path

@@ -141,6 +141,7 @@ class FrameLikelihood:
         self._W = {name: n.sqrt_information for name, n in self._noise.items()}
         self._tip, self._tail, self._grasp, self._tgrasp = nd.tip_m, nd.tail_m, nd.grasp_m, nd.grasp_tangent
         self.dim = sum(self._term_dim(name, data) for name, data in self._terms)
+        self._gn_memo: tuple[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
     @staticmethod
     def _term_dim(name: str, data: object) -> int:
@@ -206,14 +207,26 @@ class FrameLikelihood:
         return 0.5 * np.sum(e * e, axis=1) + self.cheirality(cam_T_needle)[0]
 
     def gauss_newton(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``nll (N,)``, its gradient ``J^T e`` ``(N, 6)`` and ``H = J^T J`` ``(N, 6, 6)`` (right chart)."""
-        e, J = self.whitened(cam_T_needle)
-        c, cg, cH = self.cheirality(cam_T_needle)
+        """``nll (N,)``, its gradient ``J^T e`` ``(N, 6)`` and ``H = J^T J`` ``(N, 6, 6)`` (right chart).
+
+        The last result is memoised on the exact pose values (their bytes): a tracker that
+        evaluates trial poses (a safeguard) and then linearises at the accepted ones gets the
+        second call free, bitwise identical. The memo is kept read-only; callers get copies.
+        """
+        T = res.as_pose_batch(cam_T_needle)
+        key = T.tobytes()
+        if self._gn_memo is not None and self._gn_memo[0] == key:
+            return tuple(a.copy() for a in self._gn_memo[1])
+        e, J = self.whitened(T)
+        c, cg, cH = self.cheirality(T)
         nll = 0.5 * np.sum(e * e, axis=1) + c
         JT = np.swapaxes(J, 1, 2)
         grad = (JT @ e[:, :, None])[:, :, 0] + cg
         H = JT @ J + cH
-        return nll, grad, H
+        for a in (nll, grad, H):
+            a.flags.writeable = False
+        self._gn_memo = (key, (nll, grad, H))
+        return nll.copy(), grad.copy(), H.copy()
 
     def gtsam_factors(self, key: int) -> list[gtsam.NonlinearFactor]:
         """The same terms as GTSAM factors on ``key``, biases included.

@@ -33,12 +33,13 @@ recent history (about ``1 / (1 - gamma)`` frames) rather than on the current fra
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
 
 from factors import residuals as res
-from factors.lie import se3_exp
+from factors.lie import local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood
 
 #: Random-walk noise per frame when the motion model is off or kinematics are missing:
@@ -93,6 +94,17 @@ class Linearization:
     """Per older pose j: the coupling block H_{j,j+1}, (N, 6, 6)."""
     window_value: np.ndarray
     """(N,) the window's negative log-posterior at the current poses (no elimination)."""
+    newest_part: np.ndarray | None = None
+    """(N,) the newest pose's own terms plus the last motion term at the current poses (L > 1)."""
+
+
+    def subset(self, index: np.ndarray | list[int]) -> Linearization:
+        """The same model for hypotheses ``index`` only (matches :meth:`Window.subset`)."""
+        index = np.asarray(index)
+        return Linearization(self.value[index], self.grad[index], self.hess[index],
+                             [a[index] for a in self.cond_inv], [a[index] for a in self.cond_g],
+                             [a[index] for a in self.cond_B], self.window_value[index],
+                             None if self.newest_part is None else self.newest_part[index])
 
 
 class Window:
@@ -171,15 +183,36 @@ class Window:
         while self.size > self.length:
             self._marginalise_oldest()
 
+    def _prior_terms(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The marginalisation prior on the oldest pose at poses T: value, gradient, information."""
+        r, J = res.pose_prior_residual(T, self.prior_mean)
+        e = np.einsum("nij,nj->ni", self.prior_W, r)
+        Jw = self.prior_W @ J
+        return 0.5 * np.sum(e * e, axis=1), np.einsum("nmi,nm->ni", Jw, e), np.swapaxes(Jw, 1, 2) @ Jw
+
+    def _prior_key(self, T: np.ndarray) -> tuple:
+        """Memo key of the oldest frame's terms at poses T: the frame object and the exact values."""
+        return (self.frames[0], np.ascontiguousarray(T).tobytes(), self.prior_mean.tobytes(), self.prior_W.tobytes())
+
     def _unary(self, j: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frame j's terms (and, for j = 0, the prior) at poses T: value, gradient, information.
+
+        Memoised on the exact values of T and of the prior (the last call only): the safeguard's
+        trial evaluation of the newest pose is the next linearisation's, bitwise.
+        """
+        key = None
+        if j == 0:
+            key = self._prior_key(T)
+            memo = getattr(self, "_prior_memo", None)
+            if memo is not None and memo[0] == key:
+                return memo[1]
         nll, g, H = self.frames[j].gauss_newton(T)
         if j == 0:
-            r, J = res.pose_prior_residual(T, self.prior_mean)
-            e = np.einsum("nij,nj->ni", self.prior_W, r)
-            Jw = self.prior_W @ J
-            nll = nll + 0.5 * np.sum(e * e, axis=1)
-            g = g + np.einsum("nmi,nm->ni", Jw, e)
-            H = H + np.swapaxes(Jw, 1, 2) @ Jw
+            pv, pg, pH = self._prior_terms(T)
+            nll, g, H = nll + pv, g + pg, H + pH
+            for a in (nll, g, H):
+                a.flags.writeable = False
+            self._prior_memo = (key, (nll, g, H))
         return nll, g, H
 
     def _motion(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -204,8 +237,11 @@ class Window:
             gs.append(g)
             Hs.append(H)
         Bs = []
+        newest_part = vals[-1]
         for j in range(L - 1):
             v, gp, gc, Hpp, Hpc, Hcc = self._motion(j)
+            if j == L - 2:
+                newest_part = newest_part + v
             vals[j] = vals[j] + v
             gs[j] = gs[j] + gp
             gs[j + 1] = gs[j + 1] + gc
@@ -226,7 +262,7 @@ class Window:
             g_run = gs[j + 1] - np.einsum("nij,nj->ni", BT, Hig)
             H_run = Hs[j + 1] - BT @ Hinv @ Bs[j]
         H_run = 0.5 * (H_run + np.swapaxes(H_run, 1, 2))
-        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value)
+        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
 
     def move_newest(self, step: np.ndarray, lin: Linearization) -> None:
         """Retract the newest poses by ``step (N, 6)`` and the older ones by back-substitution.
@@ -256,25 +292,24 @@ class Window:
             return self._unary(0, cam_T_newest)[0]
         # exact terms of the newest pose + exact last motion term with x_{L-2} at its conditional optimum
         j = self.size - 1
-        v_new = self.frames[j].nll(cam_T_newest)
+        # the remaining older terms: GN value of the eliminated part at d_prev (evaluated first: the
+        # current poses' evaluation is memoised by the linearisation and must not evict the trial's)
+        older = lin.value - (self._newest_part_value(lin) if lin.newest_part is None else lin.newest_part)
+        v_new = self.frames[j].gauss_newton(cam_T_newest)[0]  # memoised: the next linearisation reuses it
         # conditional optimum of x_{L-2} given the move of the newest: linear in the newest's tangent change
-        from factors.lie import local
-
         dL = local(self.poses[-1], cam_T_newest)
         rhs = lin.cond_g[-1] + np.einsum("nij,nj->ni", lin.cond_B[-1], dL)
         dprev = -np.einsum("nij,nj->ni", lin.cond_inv[-1], rhs)
         prev = self.poses[-2] @ se3_exp(dprev)
         r, _, _ = res.motion_residual(prev, cam_T_newest, self.deltas[-1])
         e = r @ self.delta_W[-1].T
-        # the remaining older terms: GN value of the eliminated part at d_prev
-        older = lin.value - self._newest_part_value(lin)
         return v_new + 0.5 * np.sum(e * e, axis=1) + older
 
     def _newest_part_value(self, lin: Linearization) -> np.ndarray:
         """Current value of the newest pose's own terms plus the last motion term."""
         assert self.poses is not None
         j = self.size - 1
-        v = self.frames[j].nll(self.poses[j])
+        v = self.frames[j].gauss_newton(self.poses[j])[0]  # memoised by the linearisation at these poses
         r, _, _ = res.motion_residual(self.poses[j - 1], self.poses[j], self.deltas[j - 1])
         e = r @ self.delta_W[j - 1].T
         return v + 0.5 * np.sum(e * e, axis=1)
@@ -308,6 +343,48 @@ class Window:
         self.frames = self.frames[1:]
         self.deltas = self.deltas[1:]
         self.delta_W = self.delta_W[1:]
+
+    def subset(self, index: np.ndarray | list[int]) -> Window:
+        """A window over hypotheses ``index`` only: copies of their poses, priors and evidence, the same frames.
+
+        Work on a few hypotheses (polishing the MAP, trial poses) then costs what those few cost,
+        not what all N cost; write the result back with ``poses[:, index] = sub.poses``.
+        """
+        assert self.poses is not None and self.prior_mean is not None and self.prior_W is not None
+        index = np.asarray(index)
+        sub = copy.copy(self)
+        sub.poses = self.poses[:, index].copy()
+        sub.prior_mean = self.prior_mean[index].copy()
+        sub.prior_W = self.prior_W[index].copy()
+        sub.evidence = None if self.evidence is None else self.evidence[index].copy()
+        sub.frames, sub.deltas, sub.delta_W = list(self.frames), list(self.deltas), list(self.delta_W)
+        sub._prior_memo = None
+        return sub
+
+    def adopt(self, sub: Window, index: np.ndarray | list[int]) -> None:
+        """Write a :meth:`subset`'s poses back to hypotheses ``index``, keeping the prior-term memo valid.
+
+        The memo of the oldest frame's terms (all hypotheses) gets the subset's rows where the
+        subset holds them for its current poses, so the next marginalisation need not
+        re-evaluate the hypotheses that did not move (equal to a fresh evaluation to round-off:
+        the subset's rows were computed in a smaller batch).
+        """
+        assert self.poses is not None and sub.poses is not None
+        index = np.asarray(index)
+        memo, sub_memo = getattr(self, "_prior_memo", None), getattr(sub, "_prior_memo", None)
+        valid = (memo is not None and sub_memo is not None and memo[0] == self._prior_key(self.poses[0])
+                 and sub_memo[0] == sub._prior_key(sub.poses[0]))
+        self.poses[:, index] = sub.poses
+        if not valid:
+            self._prior_memo = None
+            return
+        merged = []
+        for full, part in zip(memo[1], sub_memo[1], strict=True):
+            a = full.copy()
+            a[index] = part
+            a.flags.writeable = False
+            merged.append(a)
+        self._prior_memo = (self._prior_key(self.poses[0]), tuple(merged))
 
     def resample(self, index: np.ndarray) -> None:
         """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF)."""

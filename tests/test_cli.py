@@ -110,6 +110,15 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2"]) == 0
     text = (tmp_path / "bench" / "benchmark.txt").read_text()
     assert "median vs pf" in text and text.count("\n") == 1 + 5 * 5 and " mht " in text
+    lat = json.loads((tmp_path / "bench" / "latency.json").read_text())
+    assert set(lat["scenarios"]) == {"slow", "normal", "rotation", "suturing", "calibration"}
+    grid = {(r["particles"], r["window"]) for r in lat["grid"]}
+    assert grid == {(n, w) for n in (10, 25, 50, 100) for w in (1, 3, 5)}
+    normal = lat["scenarios"]["normal"]["methods"]
+    assert normal["pf"]["ratio_median_vs_pf"] == 1.0 and normal["svn"]["ratio_median_vs_map"] > 0
+    assert lat["track"]["ratio"] > 0 and (tmp_path / "bench" / "latency_vs_n_l.png").stat().st_size > 0
+    assert "SVN cost vs particles N and window L" in capsys.readouterr().out
+
 
 
 def test_output_to_a_closed_pipe_is_not_a_traceback(runs: dict[str, Path]) -> None:

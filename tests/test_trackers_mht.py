@@ -41,17 +41,17 @@ def _check_weights(est) -> None:  # noqa: ANN001
 def test_ambiguous_run_keeps_a_branch_at_the_truth(transport: bool) -> None:
     """Tail keypoint and backbone only: twin and tail flip explain the frame as well as the truth."""
     seq = synthetic_sequence(16, seed=3, tip=False, kinematics=False)
-    mht, mp = MhtTracker(_config(), MhtConfig(transport_prior=transport)), MapTracker(_config())
-    held, map_ok, several = [], [], []
+    mht = MhtTracker(_config(), MhtConfig(transport_prior=transport))
+    held, several = [], []
     for obs, T in zip(seq.observations, seq.cam_T_needle, strict=True):
         est = mht.step(obs)
         _check_weights(est)
         held.append(any(_close(m.cam_T_needle, T) for m in est.modes))
         several.append(len(est.modes) >= 2 and est.weights[1] > 0.05)
-        map_ok.append(_close(mp.step(obs).cam_T_needle, T))
     assert np.mean(held) >= 0.9  # measured 1.0
-    assert np.mean(several) >= 0.9  # the posterior is really multi-modal here (measured 1.0) ...
-    assert np.mean(map_ok) < 0.5  # ... and the single-mode MAP sits in the wrong mode (measured 0.0)
+    assert np.mean(several) >= 0.9  # the posterior is really multi-modal here (measured 1.0)
+    # (Which of the equally good modes a single-mode MAP settles in is a tie-break of round-off, so
+    # nothing is asserted about it here.)
 
 
 def test_exactly_equivalent_modes_get_equal_evidence() -> None:

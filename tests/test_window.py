@@ -151,3 +151,52 @@ def test_motion_term_is_whitened_by_the_process_noise() -> None:
     w2.push(FrameLikelihood(Observation(1, 0.033), MODEL), None, use_motion=True)
     w2.poses[1] = T0[None] @ se3_exp(d)
     np.testing.assert_allclose(w2.linearize().window_value[0], 0.5 * np.sum((d / RANDOM_WALK_SIGMA) ** 2), rtol=1e-6)
+
+
+def _fresh_copy(w: Window) -> Window:
+    """The same window with new likelihood objects (no memo anywhere)."""
+    c = w.subset(np.arange(w.poses.shape[1]))
+    c.frames = [FrameLikelihood(f.observation, f.model) for f in w.frames]
+    return c
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_memoised_trial_evaluation_equals_the_fresh_linearisation(L: int) -> None:
+    # The memo returns the very arrays computed for the (bitwise equal) trial poses; a fresh
+    # evaluation on another buffer may differ in the last bit (NumPy's SIMD reductions depend on
+    # memory alignment), hence 1e-14 rather than bitwise.
+    rng = np.random.default_rng(21)
+    w, _ = _window(L, 8, rng, frames=4)
+    lin = w.linearize()
+    step = rng.normal(size=(8, 6)) * np.r_[[0.01] * 3, [2e-4] * 3]
+    trial = w.newest @ se3_exp(step)
+    w.newest_value(trial, lin)  # the safeguard's trial: memoised
+    w.move_newest(step, lin)
+    assert np.array_equal(w.newest, trial)  # the accepted poses are bitwise the trial: the memo hits
+
+    def no_evaluation(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the newest frame was re-evaluated")
+
+    w.frames[-1].whitened = no_evaluation
+    cached = w.linearize()  # reuses the trial evaluation of the newest frame
+    fresh = _fresh_copy(w).linearize()
+    for name in ("value", "grad", "hess", "window_value"):
+        np.testing.assert_allclose(getattr(cached, name), getattr(fresh, name), rtol=1e-14, atol=0, err_msg=name)
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_adopt_keeps_the_oldest_frame_memo_equal_to_a_fresh_evaluation(L: int) -> None:
+    rng = np.random.default_rng(22)
+    w, _ = _window(L, 8, rng, frames=4)
+    lin = w.linearize()
+    sub = w.subset([5])
+    sub_lin = lin.subset([5])
+    sub.move_newest(np.r_[0.01, 0.0, -0.01, 1e-4, 0.0, 0.0][None], sub_lin)
+    sub.linearize()
+    w.adopt(sub, [5])
+    assert np.array_equal(w.poses[:, 5], sub.poses[:, 0])
+    assert w._prior_memo is not None  # merged, not dropped
+    memo = w._unary(0, w.poses[0])
+    fresh = _fresh_copy(w)._unary(0, w.poses[0])
+    for a, b in zip(memo, fresh, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)

@@ -126,19 +126,13 @@ def _write_tree(root: Path, files: dict[str, bytes]) -> Path:
 
 
 def _corrupt_png_keep_crcs(png: bytes, pos: int, value: int) -> bytes:
-    """Change one byte inside the first IDAT payload and recompute that chunk's CRC.
-
-    An earlier mutation may have destroyed the IDAT chunk (or emptied it): then the bytes are
-    already corrupt in another way and are returned unchanged.
-    """
+    """Change one byte inside the first IDAT payload and recompute that chunk's CRC."""
     i = png.find(b"IDAT") - 4
-    if i < 0:
-        return png
-    n = int.from_bytes(png[i : i + 4], "big")
+    n = int.from_bytes(png[i : i + 4], "big") if i >= 0 else 0
     payload = bytearray(png[i + 8 : i + 8 + n])
-    if not payload:
+    if i < 0 or n == 0 or len(payload) != n:  # an earlier mutation already broke the chunk: leave it
         return png
-    payload[pos % len(payload)] = value  # the declared length n may exceed what a truncation left
+    payload[pos % n] = value
     chunk = b"IDAT" + bytes(payload)
     return png[: i + 8] + bytes(payload) + zlib.crc32(chunk).to_bytes(4, "big") + png[i + 12 + n :]
 

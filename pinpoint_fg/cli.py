@@ -25,6 +25,15 @@ def _disable_list(text: str) -> tuple[str, ...]:
     return items
 
 
+def _robust_spec(text: str) -> dict:
+    from pinpoint_fg.noise import parse_robust_spec
+
+    try:
+        return parse_robust_spec(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.recording import summarize_recording, validate_run
 
@@ -67,6 +76,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         disable=args.disable,
         seed=args.seed,
         progress=None,
+        robust=args.robust,
     )
     print(f"wrote {out}")
     return 0
@@ -141,6 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--window", type=int, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
+    s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
+                   help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none); "
+                        "'none' switches all off; default: the noise file's or the built-in defaults")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", type=Path, required=True)
     s.set_defaults(func=_cmd_track)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.bimodality import assess_bimodality
 from pinpoint_fg.io.recording import Recording, read_recording
@@ -96,13 +97,18 @@ def track_recording(
     progress: bool | None = None,
     max_frames: int | None = None,
     max_points: int = 200,
+    robust: dict[str, RobustLoss] | None = None,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
     ``progress`` None shows a bar only on a terminal. ``max_frames`` stops after that many frames.
+    ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
+    noise file or the defaults.
     """
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
+    if robust is not None:
+        noise = (noise or NoiseConfig()).with_robust(robust)
     config = tracker_config(recording, method, particles, window, noise, disable, seed)
     tracker = make_tracker(method, config)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]

@@ -34,6 +34,16 @@ def _robust_spec(text: str) -> dict:
         raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
+def _probability(text: str) -> float:
+    try:
+        p = float(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from exc
+    if not 0.0 <= p <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a probability in [0, 1]")
+    return p
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.recording import summarize_recording, validate_run
 
@@ -50,7 +60,13 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from pinpoint_fg.sim.scenarios import simulate
 
-    out = simulate(args.scenario, n_frames=args.frames, seed=args.seed, out=args.out, images=args.images)
+    config = None
+    if args.mask_spurs:
+        from pinpoint_fg.sim.config import SimConfig
+
+        config = SimConfig(mask_spur_prob=args.mask_spurs)
+    out = simulate(args.scenario, n_frames=args.frames, seed=args.seed, out=args.out, images=args.images,
+                   config=config)
     print(f"wrote {out}")
     return 0
 
@@ -137,6 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--images", action="store_true", help="also render camera images with the checkerboard")
+    s.add_argument("--mask-spurs", type=_probability, default=0.0, metavar="P",
+                   help="probability of a 20-35 px spur (skeleton outlier) per mask (default 0)")
     s.set_defaults(func=_cmd_simulate)
 
     s = sub.add_parser("groundtruth", help="gt_* columns from the checkerboard in the run's images")

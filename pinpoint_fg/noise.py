@@ -67,7 +67,10 @@ DEFAULT_MOTION_SIGMA: tuple[float, ...] = (0.02, 0.02, 0.02, 0.3e-3, 0.3e-3, 0.3
 ROBUST_RESIDUALS: tuple[str, ...] = ("tip", "tail", "conic", "grasp_position", "grasp_perpendicular")
 
 #: Default robust loss per residual (unlisted: none). See README "Robust losses" for the measurements.
-DEFAULT_ROBUST: dict[str, RobustLoss] = {}
+DEFAULT_ROBUST: dict[str, RobustLoss] = {
+    "conic": RobustLoss("huber", 1.345),
+    "grasp_perpendicular": RobustLoss("cauchy", 1.0),
+}
 
 
 def parse_robust_spec(text: str) -> dict[str, RobustLoss]:

@@ -36,6 +36,8 @@ def _obs(T: np.ndarray, rng: np.random.Generator) -> Observation:
 
 
 def _noise(robust: dict[str, RobustLoss]) -> NoiseConfig:
+    """Noise with biases and full covariances; robust losses only where ``robust`` says (not the defaults)."""
+    robust = {**parse_robust_spec("none"), **robust}
     cov3 = np.array([[2.0, 0.3, 0.1], [0.3, 1.5, 0.0], [0.1, 0.0, 4.0]]) * 1e-7
     return NoiseConfig({
         "tip": ResidualNoise(np.r_[0.2, -0.1], np.array([[1.0, 0.2], [0.2, 1.1]])),

@@ -68,8 +68,8 @@ ROBUST_RESIDUALS: tuple[str, ...] = ("tip", "tail", "conic", "grasp_position", "
 
 #: Default robust loss per residual (unlisted: none). See README "Robust losses" for the measurements.
 DEFAULT_ROBUST: dict[str, RobustLoss] = {
-    "conic": RobustLoss("huber", 1.345),
-    "grasp_perpendicular": RobustLoss("cauchy", 1.0),
+    "conic": RobustLoss("cauchy", 3.0),
+    "grasp_perpendicular": RobustLoss("huber", 1.345),
 }
 
 

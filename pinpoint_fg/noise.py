@@ -77,7 +77,7 @@ ROBUST_RESIDUALS: tuple[str, ...] = ("tip", "tail", "conic", "grasp_position", "
 #: perpendicularity cauchy 1   0.84 / 13.7  3.31 / 99.3  (flipped pose chosen at seeding)
 #: conic huber 1.345           0.91 / 15.2  0.77 / 3.45                0.53 / 4.36
 #: conic cauchy 1              1.12 / 18.4                             0.47 / 3.57
-#: conic cauchy 3              0.89 / 14.4  0.77 / 3.43                0.52 / 4.15
+#: conic cauchy 3              0.91 / 15.2  0.77 / 3.43                0.52 / 4.15
 #: grasp position huber        1.42 / 24.6
 #: keypoints huber             0.93 / 15.1
 #: these defaults              0.86 / 13.8  0.77 / 3.45  0.38 / 3.49   0.52 / 4.15

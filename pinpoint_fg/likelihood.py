@@ -237,6 +237,23 @@ class FrameLikelihood:
             return loss, np.zeros((N, 0)), (np.zeros((N, 0, 6)) if jacobian else None)
         return loss, np.concatenate(es, axis=1), (np.concatenate(Js, axis=1) if jacobian else None)
 
+    def loss_at_rms(self, rms_sigma: float) -> float:
+        """``nll`` of residuals whose blocks are all ``rms_sigma`` standard deviations per dimension off.
+
+        ``sum_b rho_b(rms_sigma sqrt(dim_b))``; without robust losses ``1/2 rms_sigma^2 dim``. The
+        implausibility test (:func:`pinpoint_fg.trackers.base.implausible`) compares against it so a
+        robust loss does not make every frame look plausible.
+        """
+        total = 0.0
+        for name, data in self._terms:
+            dim = self._term_dim(name, data)
+            rl = self._loss[name]
+            if name == "conic":
+                total += dim * float(rl.loss(rms_sigma))
+            else:
+                total += float(rl.loss(rms_sigma * np.sqrt(dim)))
+        return total
+
     def cheirality(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penalty ``1/2 s^2``, ``s = max(0, z_min - z) / 1 mm``: value (N,), gradient (N, 6), Hessian (N, 6, 6)."""
         T = res.as_pose_batch(cam_T_needle)
@@ -251,11 +268,6 @@ class FrameLikelihood:
         """Negative log-likelihood ``sum_b rho_b(|e_b|)`` plus the cheirality penalty, shape (N,)."""
         loss, _, _ = self.irls(cam_T_needle, jacobian=False)
         return loss + self.cheirality(cam_T_needle)[0]
-
-    def fit_nll(self, cam_T_needle: np.ndarray) -> np.ndarray:
-        """Gaussian ``1/2 |e|^2`` plus the cheirality penalty (N,), robust losses ignored (goodness of fit)."""
-        e, _ = self.whitened(cam_T_needle, jacobian=False)
-        return 0.5 * np.sum(e * e, axis=1) + self.cheirality(cam_T_needle)[0]
 
     def gauss_newton(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``nll (N,)``, its gradient ``J^T w e`` ``(N, 6)`` and ``H = J^T w J`` ``(N, 6, 6)`` (right chart, IRLS)."""

@@ -114,9 +114,11 @@ def test_robust_lowers_the_nll_and_reaches_pf_weights_and_implausibility() -> No
     assert np.all(rob.nll(poses) < plain.nll(poses))
     # the particle filter's log-weights are minus this nll
     np.testing.assert_array_equal(batched_nll(rob, poses, chunk=7), rob.nll(poses))
-    # implausibility is judged on the Gaussian fit statistic, which robust losses do not change
-    np.testing.assert_allclose(rob.fit_nll(poses), plain.nll(poses), rtol=1e-13)
-    assert implausible(0.5 * 25 * rob.dim * 1.01, rob) and not implausible(0.5 * 25 * rob.dim * 0.99, rob)
+    # implausibility: the same statement (every block 5 sigma off) in the robust loss's units
+    assert plain.loss_at_rms(5.0) == pytest.approx(0.5 * 25.0 * plain.dim, rel=1e-12)
+    thr = rob.loss_at_rms(5.0)
+    assert thr == pytest.approx(0.5 * 25 * (plain.dim - 30) + 30 * 0.5 * np.log1p(25.0), rel=1e-12)
+    assert implausible(thr * 1.01, rob) and not implausible(thr * 0.99, rob)
 
 
 def test_noise_file_carries_robust_losses(tmp_path) -> None:  # noqa: ANN001

@@ -165,7 +165,7 @@ def test_recovers_when_gtsam_raises() -> None:
 def test_reseeds_from_a_hopeless_track() -> None:
     seq = synthetic_sequence(3, seed=16)
     # Gaussian losses: with the default robust conic the smoother follows this jump by itself
-    # (measured 0.53 mm, no re-seed needed), so the stuck track this test needs does not happen
+    # (measured 0.53 mm from the jumped pose, no re-seed), so the stuck track this test needs does not happen
     from dataclasses import replace
 
     from pinpoint_fg.noise import NoiseConfig, parse_robust_spec

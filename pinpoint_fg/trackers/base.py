@@ -67,10 +67,8 @@ def implausible(best_nll: float, lik: FrameLikelihood, rms_sigma: float = IMPLAU
     ``rms_sigma`` (5) standard deviations off on average, far outside chi-square's range for every
     ``m`` (for m = 2 the chance is e^-25, for m = 200 it is nil) but still tolerant of a moderately
     mis-calibrated noise model. The cheirality penalty is part of ``nll`` and counts against it.
-    ``best_nll`` must be the Gaussian fit statistic
-    :meth:`~pinpoint_fg.likelihood.FrameLikelihood.fit_nll`, not the robust ``nll``: a redescending
-    loss (Cauchy) caps what unexplained residuals cost, so a pose explaining only part of a frame
-    would pass (measured: the MAP tracker no longer re-seeded after a 12 mm jump).
+    With robust losses the threshold is the same statement in their units:
+    :meth:`~pinpoint_fg.likelihood.FrameLikelihood.loss_at_rms` (every block ``rms_sigma`` off).
     A frame without residuals (``m = 0``: no image evidence, no kinematics) can judge nothing and
     returns False; a non-finite ``best_nll`` returns True.
     """
@@ -78,7 +76,7 @@ def implausible(best_nll: float, lik: FrameLikelihood, rms_sigma: float = IMPLAU
         return True
     if lik.dim == 0:
         return False
-    return bool(best_nll > 0.5 * rms_sigma**2 * lik.dim)
+    return bool(best_nll > lik.loss_at_rms(rms_sigma))
 
 
 

@@ -268,7 +268,7 @@ class MapTracker(Tracker):
                     result = self._restart(frame_factors, key, cam_T_init)
         assert self._smoother is not None
         est = self._smoother.calculateEstimatePose3(key).matrix()
-        if self.map.reseed and key > self._first_key and implausible(float(lik.fit_nll(est)[0]), lik):
+        if self.map.reseed and key > self._first_key and implausible(float(lik.nll(est)[0]), lik):
             result = self._restart(frame_factors, key, self._seed_pose(lik))
             est = self._smoother.calculateEstimatePose3(key).matrix()
             reseeded = True

@@ -187,7 +187,7 @@ class ParticleFilterTracker(Tracker):
             T = propagate(self._particles, delta, self.pf.random_walk_sigma, self.rng)
             nll = batched_nll(lik, T)
             log_w = normalize_log_weights(self._log_w - nll)
-            if self.pf.reseed and implausible(float(lik.fit_nll(T[int(np.argmin(nll))])[0]), lik):
+            if self.pf.reseed and implausible(float(np.min(nll)), lik):
                 T, nll = self._seed(lik)
                 log_w = normalize_log_weights(-nll)
                 reseeded = True

@@ -313,7 +313,7 @@ class SvnTracker(Tracker):
         twinned = self.svn.twin_share > 0 and self._inject_twin(lik)
         first = self.frames_seen < self.svn.first_frames
         iters, value = self._transport(self.svn.iters_first if first else self.svn.iters_later)
-        if implausible(float(lik.fit_nll(self.window.newest[int(np.argmin(value))][None])[0]), lik):
+        if implausible(float(lik.nll(self.window.newest[int(np.argmin(value))][None])[0]), lik):
             kept = (self.window.poses.copy(), self.window.prior_mean.copy(), self.window.prior_W.copy(),
                     self.window.evidence.copy())
             kept_frames = (list(self.window.frames), list(self.window.deltas), list(self.window.delta_W))

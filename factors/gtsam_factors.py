@@ -170,6 +170,67 @@ class ConicFactor(_UnaryPoseFactor):
         super().__init__(noise, key, pts.shape[0], fn)
 
 
+class _ConicCache:
+    """All pixels' Sampson distances and Jacobians at the last pose asked for (one batched call per pose)."""
+
+    def __init__(self, K: np.ndarray, radius_m: float, points_px: np.ndarray, bias: float) -> None:
+        self._K, self._r, self._pts, self._b = K, radius_m, points_px, bias
+        self._key: bytes | None = None
+        self._rJ: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __call__(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = np.ascontiguousarray(T, dtype=float).tobytes()
+        if key != self._key or self._rJ is None:
+            r, J = res.conic_residual(T, self._K, self._r, self._pts)
+            self._rJ = (r[0] - self._b, J[0])
+            self._key = key
+        return self._rJ
+
+
+class ConicPixelFactor(_UnaryPoseFactor):
+    """The Sampson distance of ONE backbone pixel (1 px); see :func:`conic_pixel_factors`."""
+
+    def __init__(self, key: int, cache: _ConicCache, index: int, noise: gtsam.noiseModel.Base) -> None:
+        i = int(index)
+
+        def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            r, J = cache(T[0])
+            return r[i : i + 1], J[i : i + 1]
+
+        super().__init__(noise, key, 1, fn)
+
+
+def conic_pixel_factors(
+    key: int,
+    camera: PinholeCamera | np.ndarray,
+    radius_m: float,
+    points_px: np.ndarray,
+    noise: gtsam.noiseModel.Base,
+    bias: float = 0.0,
+) -> list[ConicPixelFactor]:
+    """One 1-row factor per backbone pixel, each with the 1-D ``noise`` (typically a robust model).
+
+    The per-pixel form of :class:`ConicFactor`: GTSAM weights a robust factor by the norm of its
+    whole whitened vector, so a robust loss *per pixel* needs one factor per pixel. The sum of
+    their errors and their stacked linearisations equal :class:`ConicFactor`'s when ``noise`` is
+    the plain Gaussian. All the factors share one cache, so a graph linearised at one pose runs
+    the batched :func:`factors.residuals.conic_residual` once, not once per pixel.
+    """
+    K = _camera_K(camera)
+    pts = as_points_px("points_px", points_px)
+    if pts.shape[0] == 0:
+        raise ValueError("points_px must hold at least one backbone pixel")
+    r_m = float(radius_m)
+    if not np.isfinite(r_m) or r_m <= 0:
+        raise ValueError(f"radius_m must be a positive finite number, got {radius_m!r}")
+    b = float(bias)
+    if not np.isfinite(b):
+        raise ValueError("bias must be finite")
+    _check_noise(noise, 1)
+    cache = _ConicCache(K, r_m, pts, b)
+    return [ConicPixelFactor(key, cache, i, noise) for i in range(pts.shape[0])]
+
+
 class GraspPositionFactor(_UnaryPoseFactor):
     """Grasp position ``T X_g - p_g`` (3 m, camera axes); ``p_g`` from kinematics."""
 

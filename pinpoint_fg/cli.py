@@ -27,6 +27,25 @@ def _disable_list(text: str) -> tuple[str, ...]:
     return items
 
 
+def _robust_spec(text: str) -> dict:
+    from pinpoint_fg.noise import parse_robust_spec
+
+    try:
+        return parse_robust_spec(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+def _probability(text: str) -> float:
+    try:
+        p = float(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from exc
+    if not 0.0 <= p <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a probability in [0, 1]")
+    return p
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.recording import summarize_recording, validate_run
 
@@ -45,7 +64,13 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from pinpoint_fg.sim.scenarios import simulate
 
     prepare_output_dir(args.out, args.overwrite, "simulated run")
-    out = simulate(args.scenario, n_frames=args.frames, seed=args.seed, out=args.out, images=args.images)
+    config = None
+    if args.mask_spurs:
+        from pinpoint_fg.sim.config import SimConfig
+
+        config = SimConfig(mask_spur_prob=args.mask_spurs)
+    out = simulate(args.scenario, n_frames=args.frames, seed=args.seed, out=args.out, images=args.images,
+                   config=config)
     print(f"wrote {out}")
     return 0
 
@@ -73,6 +98,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         progress=None,
         overwrite=args.overwrite,
         verdict_workers=1,  # bimodality verdicts in a worker process, alongside the tracker
+        robust=args.robust,
     )
     print(f"wrote {out}")
     return 0
@@ -272,6 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--images", action="store_true", help="also render camera images with the checkerboard")
+    s.add_argument("--mask-spurs", type=_probability, default=0.0, metavar="P",
+                   help="probability of a 20-35 px spur (skeleton outlier) per mask (default 0)")
     s.set_defaults(func=_cmd_simulate)
 
     s = sub.add_parser("groundtruth", help="gt_* columns from the checkerboard in the run's images")
@@ -287,6 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--window", type=int, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
+    s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
+                   help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none); "
+                        "'none' switches all off; default: the noise file's or the built-in defaults")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)

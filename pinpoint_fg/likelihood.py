@@ -4,11 +4,17 @@
 measurement of that frame — tip/tail keypoints, dense backbone (conic), grasp position,
 grasp perpendicularity — for ``N`` poses at once:
 
-    e_k(T) = W_k (r_k(T) - mu_k),    nll(T) = 1/2 sum_k |e_k(T)|^2
+    e_k(T) = W_k (r_k(T) - mu_k),    nll(T) = sum_b rho_b(|e_b(T)|)
 
 with ``r_k`` from :mod:`factors.residuals` (the only copy of the maths), ``mu_k`` the
-calibrated bias and ``W_k^T W_k = Sigma_k^-1`` (:mod:`pinpoint_fg.noise`). Its Gauss-Newton
-form gives, per pose, the gradient of ``nll`` and ``H = J^T J`` in GTSAM's right chart.
+calibrated bias and ``W_k^T W_k = Sigma_k^-1`` (:mod:`pinpoint_fg.noise`). ``b`` runs over the
+blocks one GTSAM factor measures — each keypoint (2), the grasp position (3), perpendicularity
+(1) and every backbone pixel (1) — and ``rho_b`` is the residual type's robust loss
+(:mod:`factors.robust`; ``rho = d^2 / 2`` without one, giving ``1/2 sum |e|^2``). Its Gauss-Newton
+form is iteratively reweighted least squares exactly as GTSAM linearises a robust factor: with
+``w_b = rho_b'(d_b) / d_b``, ``e_b -> sqrt(w_b) e_b`` and ``J_b -> sqrt(w_b) J_b``, so per pose the
+gradient is ``sum_b w_b J_b^T e_b`` (the exact gradient of ``nll``) and ``H = sum_b w_b J_b^T J_b``,
+in GTSAM's right chart.
 ``gtsam_factors(key)`` returns the same terms as GTSAM factors (used by the MAP baseline and
 by the tests that prove the two paths equal).
 
@@ -31,7 +37,9 @@ from factors.gtsam_factors import (
     GraspPerpendicularFactor,
     GraspPositionFactor,
     KeypointFactor,
+    conic_pixel_factors,
 )
+from factors.robust import RobustLoss
 from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
 
@@ -139,6 +147,7 @@ class FrameLikelihood:
                 self._terms.append(("grasp_perpendicular", o.cam_T_grasper[:3, 2].copy()))
         self._noise = {name: model.noise[name] for name, _ in self._terms}
         self._W = {name: n.sqrt_information for name, n in self._noise.items()}
+        self._loss: dict[str, RobustLoss] = {name: model.noise.loss(name) for name, _ in self._terms}
         self._tip, self._tail, self._grasp, self._tgrasp = nd.tip_m, nd.tail_m, nd.grasp_m, nd.grasp_tangent
         self.dim = sum(self._term_dim(name, data) for name, data in self._terms)
         self._gn_memo: tuple[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
@@ -169,27 +178,82 @@ class FrameLikelihood:
             return res.grasp_position_residual(T, self._grasp, data)
         return res.grasp_perpendicular_residual(T, self._tgrasp, data)
 
-    def whitened(self, cam_T_needle: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """Whitened residuals ``e (N, m)`` and Jacobians ``(N, m, 6)`` (None with ``jacobian=False``)."""
-        T = res.as_pose_batch(cam_T_needle)
-        N = T.shape[0]
-        es, Js = [], []
+    def _blocks(self, T: np.ndarray, jacobian: bool) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
+        """Per term: name, whitened residual ``(N, d)`` and Jacobian ``(N, d, 6)`` (None without jacobian)."""
+        out = []
         for name, data in self._terms:
             r, J = self._raw(name, data, T, jacobian)
             n = self._noise[name]
             W = self._W[name]
             if name == "conic":
                 # one scalar noise per pixel: W and mean are 1x1
-                es.append((r - n.mean[0]) * W[0, 0])
-                if jacobian:
-                    Js.append(J * W[0, 0])
+                out.append((name, (r - n.mean[0]) * W[0, 0], J * W[0, 0] if jacobian else None))
             else:
-                es.append((r - n.mean) @ W.T)
-                if jacobian:
-                    Js.append(W @ J)
-        if not es:
+                out.append((name, (r - n.mean) @ W.T, W @ J if jacobian else None))
+        return out
+
+    def whitened(self, cam_T_needle: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Whitened residuals ``e (N, m)`` and Jacobians ``(N, m, 6)`` (None with ``jacobian=False``).
+
+        Plain (not robustly reweighted); :meth:`irls` gives the weighted ones.
+        """
+        T = res.as_pose_batch(cam_T_needle)
+        N = T.shape[0]
+        blocks = self._blocks(T, jacobian)
+        if not blocks:
             return np.zeros((N, 0)), (np.zeros((N, 0, 6)) if jacobian else None)
-        return np.concatenate(es, axis=1), (np.concatenate(Js, axis=1) if jacobian else None)
+        e = np.concatenate([b[1] for b in blocks], axis=1)
+        return e, (np.concatenate([b[2] for b in blocks], axis=1) if jacobian else None)
+
+    def irls(self, cam_T_needle: np.ndarray, jacobian: bool = True
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Robust loss ``sum_b rho_b(|e_b|)`` ``(N,)``, and ``sqrt(w) e`` ``(N, m)``, ``sqrt(w) J`` ``(N, m, 6)``.
+
+        The rows of the last two are those of :meth:`whitened`, each block scaled by the square root
+        of its IRLS weight (module docstring) — what GTSAM's ``linearize`` of the same factor with
+        :meth:`factors.robust.RobustLoss.gtsam_model` returns as ``A`` and ``-b``. Terms without a
+        robust loss are left as they are and cost ``1/2 |e|^2``.
+        """
+        T = res.as_pose_batch(cam_T_needle)
+        N = T.shape[0]
+        loss = np.zeros(N)
+        es, Js = [], []
+        for name, e, J in self._blocks(T, jacobian):
+            rl = self._loss[name]
+            if rl.active:
+                # a conic block is one pixel; the others are the whole term
+                d = np.abs(e) if name == "conic" else np.linalg.norm(e, axis=1, keepdims=True)
+                loss += np.sum(rl.loss(d), axis=1)
+                sw = np.sqrt(rl.weight(d))
+                if name != "conic":
+                    sw = np.broadcast_to(sw, e.shape)
+                e = e * sw
+                if jacobian:
+                    J = J * sw[:, :, None]
+            else:
+                loss += 0.5 * np.sum(e * e, axis=1)
+            es.append(e)
+            Js.append(J)
+        if not es:
+            return loss, np.zeros((N, 0)), (np.zeros((N, 0, 6)) if jacobian else None)
+        return loss, np.concatenate(es, axis=1), (np.concatenate(Js, axis=1) if jacobian else None)
+
+    def loss_at_rms(self, rms_sigma: float) -> float:
+        """``nll`` of residuals whose blocks are all ``rms_sigma`` standard deviations per dimension off.
+
+        ``sum_b rho_b(rms_sigma sqrt(dim_b))``; without robust losses ``1/2 rms_sigma^2 dim``. The
+        implausibility test (:func:`pinpoint_fg.trackers.base.implausible`) compares against it so a
+        robust loss does not make every frame look plausible.
+        """
+        total = 0.0
+        for name, data in self._terms:
+            dim = self._term_dim(name, data)
+            rl = self._loss[name]
+            if name == "conic":
+                total += dim * float(rl.loss(rms_sigma))
+            else:
+                total += float(rl.loss(rms_sigma * np.sqrt(dim)))
+        return total
 
     def cheirality(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penalty ``1/2 s^2``, ``s = max(0, z_min - z) / 1 mm``: value (N,), gradient (N, 6), Hessian (N, 6, 6)."""
@@ -202,12 +266,12 @@ class FrameLikelihood:
         return 0.5 * s * s, s[:, None] * Js, Js[:, :, None] * Js[:, None, :]
 
     def nll(self, cam_T_needle: np.ndarray) -> np.ndarray:
-        """Negative log-likelihood ``1/2 |e|^2`` plus the cheirality penalty, shape (N,)."""
-        e, _ = self.whitened(cam_T_needle, jacobian=False)
-        return 0.5 * np.sum(e * e, axis=1) + self.cheirality(cam_T_needle)[0]
+        """Negative log-likelihood ``sum_b rho_b(|e_b|)`` plus the cheirality penalty, shape (N,)."""
+        loss, _, _ = self.irls(cam_T_needle, jacobian=False)
+        return loss + self.cheirality(cam_T_needle)[0]
 
     def gauss_newton(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``nll (N,)``, its gradient ``J^T e`` ``(N, 6)`` and ``H = J^T J`` ``(N, 6, 6)`` (right chart).
+        """``nll (N,)``, its gradient ``J^T w e`` ``(N, 6)`` and ``H = J^T w J`` ``(N, 6, 6)`` (right chart, IRLS).
 
         The last result is memoised on the exact pose values (their bytes): a tracker that
         evaluates trial poses (a safeguard) and then linearises at the accepted ones gets the
@@ -217,9 +281,9 @@ class FrameLikelihood:
         key = T.tobytes()
         if self._gn_memo is not None and self._gn_memo[0] == key:
             return tuple(a.copy() for a in self._gn_memo[1])
-        e, J = self.whitened(T)
+        loss, e, J = self.irls(T)
         c, cg, cH = self.cheirality(T)
-        nll = 0.5 * np.sum(e * e, axis=1) + c
+        nll = loss + c
         JT = np.swapaxes(J, 1, 2)
         grad = (JT @ e[:, :, None])[:, :, 0] + cg
         H = JT @ J + cH
@@ -234,23 +298,32 @@ class FrameLikelihood:
         The biases of keypoint and grasp-position residuals shift the measurement
         (``r - mu = pi(TX) - (z + mu)``); conic and perpendicularity factors take theirs as
         ``bias``. The cheirality penalty has no factor: it is zero for every pose in front of
-        the camera.
+        the camera. A residual type with a robust loss gets ``gtsam.noiseModel.Robust`` around its
+        Gaussian (:meth:`factors.robust.RobustLoss.gtsam_model`); the conic then becomes one factor
+        per pixel (:func:`factors.gtsam_factors.conic_pixel_factors`), since GTSAM weights a
+        factor's whole whitened vector.
         """
         cam, nd = self.model.camera, self.model.needle
         out: list[gtsam.NonlinearFactor] = []
         for name, data in self._terms:
             n: ResidualNoise = self._noise[name]
+            rl = self._loss[name]
             if name in ("tip", "tail"):
                 X = nd.tip_m if name == "tip" else nd.tail_m
-                out.append(KeypointFactor(key, cam, X, np.asarray(data) + n.mean, n.gtsam_model()))
+                out.append(KeypointFactor(key, cam, X, np.asarray(data) + n.mean, rl.gtsam_model(n.gtsam_model())))
             elif name == "conic":
                 pts = np.asarray(data)
-                out.append(ConicFactor(key, cam, nd.radius_m, pts,
-                                       gtsam.noiseModel.Isotropic.Sigma(len(pts), float(n.sigma[0])),
-                                       bias=float(n.mean[0])))
+                if rl.active:
+                    pixel = rl.gtsam_model(gtsam.noiseModel.Isotropic.Sigma(1, float(n.sigma[0])))
+                    out.extend(conic_pixel_factors(key, cam, nd.radius_m, pts, pixel, bias=float(n.mean[0])))
+                else:
+                    out.append(ConicFactor(key, cam, nd.radius_m, pts,
+                                           gtsam.noiseModel.Isotropic.Sigma(len(pts), float(n.sigma[0])),
+                                           bias=float(n.mean[0])))
             elif name == "grasp_position":
-                out.append(GraspPositionFactor(key, nd.grasp_m, np.asarray(data) + n.mean, n.gtsam_model()))
+                out.append(GraspPositionFactor(key, nd.grasp_m, np.asarray(data) + n.mean,
+                                               rl.gtsam_model(n.gtsam_model())))
             else:
-                out.append(GraspPerpendicularFactor(key, nd.grasp_tangent, data, n.gtsam_model(),
+                out.append(GraspPerpendicularFactor(key, nd.grasp_tangent, data, rl.gtsam_model(n.gtsam_model()),
                                                     bias=float(n.mean[0])))
         return out

@@ -9,7 +9,13 @@ File format (JSON)::
     {"format": "pinpoint-noise", "version": 1,
      "residuals": {"tip": {"mean": [du, dv], "cov": [[...], [...]], "count": n}, ...}}
 
-with one entry per residual type in :data:`RESIDUAL_DIMS`. Units are those of the residual:
+with one entry per residual type in :data:`RESIDUAL_DIMS`, and optionally (same version; a file
+without it keeps :data:`DEFAULT_ROBUST`)::
+
+     "robust": {"conic": {"loss": "huber", "k": 1.345}, "tip": {"loss": "none"}, ...}
+
+the robust loss of each measurement residual (:mod:`factors.robust`, thresholds in whitened units).
+Units are those of the residual:
 pixels (tip, tail, conic), metres (grasp_position, camera axes), unitless
 (grasp_perpendicular), and the tangent ``[omega (rad); v (m)]`` of the motion residual
 (per camera frame, in the needle frame: it is GTSAM's right-perturbation chart).
@@ -28,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from factors.robust import NO_LOSS, RobustLoss
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.jsonfile import load_json
 
@@ -55,6 +62,75 @@ TABLE_I_SIGMA: dict[str, tuple[float, ...]] = {
 #: needle can turn inside the grasp (external forces) and the robot can slip in tissue; 0.02 rad
 #: (~1.1 deg) and 0.3 mm per frame admit ~35 deg/s and ~9 mm/s of unmodelled motion at 1 sigma.
 DEFAULT_MOTION_SIGMA: tuple[float, ...] = (0.02, 0.02, 0.02, 0.3e-3, 0.3e-3, 0.3e-3)
+
+
+#: Residual types that take a robust loss (the motion residual stays Gaussian).
+ROBUST_RESIDUALS: tuple[str, ...] = ("tip", "tail", "conic", "grasp_position", "grasp_perpendicular")
+
+#: Default robust loss per residual (unlisted: none), chosen by measurement (README "Robust losses").
+#: Mean translation (mm) / rotation (deg) error, seed 1, GTSAM MAP, 300 frames, each loss alone:
+#:
+#: ==========================  ===========  ===========  ============  ============
+#: loss                        rotation     suturing     normal        normal+spurs
+#: ==========================  ===========  ===========  ============  ============
+#: none                        0.92 / 15.3  0.77 / 3.46  0.39 / 3.55   0.99 / 12.3
+#: perpendicularity huber      0.87 / 13.8  0.77 / 3.48
+#: perpendicularity cauchy 1   0.84 / 13.7  3.31 / 99.3  (flipped pose chosen at seeding)
+#: conic huber 1.345           0.91 / 15.2  0.77 / 3.45                0.53 / 4.36
+#: conic cauchy 1              1.12 / 18.4                             0.47 / 3.57
+#: conic cauchy 3              0.91 / 15.2  0.77 / 3.43                0.52 / 4.15
+#: grasp position huber        1.42 / 24.6
+#: keypoints huber             0.93 / 15.1
+#: these defaults              0.86 / 13.8  0.77 / 3.45  0.38 / 3.49   0.52 / 4.15
+#: ==========================  ===========  ===========  ============  ============
+DEFAULT_ROBUST: dict[str, RobustLoss] = {
+    "conic": RobustLoss("cauchy", 3.0),
+    "grasp_perpendicular": RobustLoss("huber", 1.345),
+}
+
+
+def parse_robust_spec(text: str) -> dict[str, RobustLoss]:
+    """``--robust`` text -> loss per residual: ``none`` or ``NAME=LOSS[:K],...``.
+
+    ``NAME`` is a residual of :data:`ROBUST_RESIDUALS` (``-`` or ``_``; ``keypoints`` means tip and
+    tail), ``LOSS`` one of none/huber/cauchy, ``K`` the threshold in standard deviations (default
+    1.345 for Huber, 1.0 for Cauchy). The result is the complete setting: unlisted residuals get
+    ``none``. Raises ValueError naming the bad item.
+    """
+    out = {name: NO_LOSS for name in ROBUST_RESIDUALS}
+    text = text.strip()
+    if text.lower() in ("none", "off", ""):
+        return out
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        name, eq, loss = item.partition("=")
+        if not eq:
+            raise ValueError(f"robust item {item.strip()!r} must be NAME=LOSS[:K]")
+        name = name.strip().replace("-", "_")
+        names = ("tip", "tail") if name == "keypoints" else (name,)
+        if names[0] not in ROBUST_RESIDUALS:
+            raise ValueError(f"robust item {item.strip()!r}: unknown residual {name!r}; choose from "
+                             + ", ".join(n.replace("_", "-") for n in ROBUST_RESIDUALS) + ", keypoints")
+        try:
+            rl = RobustLoss.parse(loss)
+        except ValueError as exc:
+            raise ValueError(f"robust item {item.strip()!r}: {exc}") from exc
+        for n in names:
+            out[n] = rl
+    return out
+
+
+def format_robust(robust: dict[str, RobustLoss]) -> str:
+    """The ``--robust`` text of a setting (``none`` when no loss is active)."""
+    items = [f"{n.replace('_', '-')}={robust[n]}" for n in ROBUST_RESIDUALS if robust[n].active]
+    return ",".join(items) if items else "none"
+
+
+def _default_robust() -> dict[str, RobustLoss]:
+    out = {name: NO_LOSS for name in ROBUST_RESIDUALS}
+    out.update(DEFAULT_ROBUST)
+    return out
 
 
 @dataclass(frozen=True)
@@ -126,8 +202,18 @@ class NoiseConfig:
 
     residuals: dict[str, ResidualNoise] = field(default_factory=_default_residuals)
     """Residual type -> its noise; keys are those of RESIDUAL_DIMS."""
+    robust: dict[str, RobustLoss] = field(default_factory=_default_robust)
+    """Residual type -> its robust loss; keys are those of ROBUST_RESIDUALS (missing ones: DEFAULT_ROBUST)."""
 
     def __post_init__(self) -> None:
+        rob = _default_robust()
+        rob.update(self.robust)
+        for k, v in rob.items():
+            if k not in ROBUST_RESIDUALS:
+                raise ValueError(f"no robust loss for residual type {k!r}; expected one of {ROBUST_RESIDUALS}")
+            if not isinstance(v, RobustLoss):
+                raise ValueError(f"robust loss of {k!r} must be a RobustLoss, got {type(v).__name__}")
+        object.__setattr__(self, "robust", rob)
         merged = _default_residuals()
         merged.update(self.residuals)
         for k, v in merged.items():
@@ -139,6 +225,14 @@ class NoiseConfig:
 
     def __getitem__(self, key: str) -> ResidualNoise:
         return self.residuals[key]
+
+    def loss(self, key: str) -> RobustLoss:
+        """The robust loss of residual type ``key`` (``none`` for motion)."""
+        return self.robust.get(key, NO_LOSS)
+
+    def with_robust(self, robust: dict[str, RobustLoss]) -> NoiseConfig:
+        """A copy with the robust losses replaced by ``robust`` (unlisted residuals: DEFAULT_ROBUST)."""
+        return NoiseConfig(residuals=dict(self.residuals), robust=dict(robust))
 
     @property
     def process_cov(self) -> np.ndarray:
@@ -154,6 +248,8 @@ class NoiseConfig:
                 k: {"mean": v.mean.tolist(), "cov": v.cov.tolist(), "count": int(v.count)}
                 for k, v in self.residuals.items()
             },
+            "robust": {k: ({"loss": v.kind, "k": v.k} if v.active else {"loss": "none"})
+                       for k, v in self.robust.items()},
         }
 
     def save(self, path: str | Path) -> None:
@@ -188,12 +284,33 @@ class NoiseConfig:
                 raise InputError(f"{where}: {exc}", file=path) from exc
             if parsed[k].dim != d:
                 raise InputError(f"{where}: dimension {parsed[k].dim}, expected {d}", file=path)
-        return cls(residuals=parsed)
+        return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path))
 
     def process_variance_whitened(self, scale: np.ndarray) -> float:
         """``tr(S^-1 Q S^-1) / 6``: the mean per-axis process variance in the kernel's whitened units."""
         s = np.asarray(scale, dtype=float)
         return float(np.trace(self.process_cov / np.outer(s, s)) / 6.0)
+
+
+def _load_robust(rob: object, path: Path) -> dict[str, RobustLoss]:
+    """The optional ``robust`` object of a noise file (unknown residual types are ignored)."""
+    if not isinstance(rob, dict):
+        raise InputError('key "robust" must be an object', file=path)
+    out: dict[str, RobustLoss] = {}
+    for k, entry in rob.items():
+        if k not in ROBUST_RESIDUALS:
+            continue
+        where = f'key "robust.{k}"'
+        if not isinstance(entry, dict) or not isinstance(entry.get("loss"), str):
+            raise InputError(f'{where} must be an object with "loss" (none, huber, cauchy) and optionally "k"',
+                             file=path)
+        try:
+            kind = entry["loss"]
+            default_k = 1.345 if kind == "huber" else 1.0
+            out[k] = RobustLoss(kind, float(entry.get("k", default_k)))
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{where}: {exc}", file=path) from exc
+    return out
 
 
 def degrees(rad: float) -> float:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.bimodality import assess_bimodality
 from pinpoint_fg.io.outdir import prepare_output_dir
@@ -158,6 +159,7 @@ def track_recording(
     max_points: int = 200,
     overwrite: bool = False,
     verdict_workers: int = 0,
+    robust: dict[str, RobustLoss] | None = None,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
@@ -167,10 +169,14 @@ def track_recording(
     ``verdict_workers`` processes summarise each frame (GMM verdict, modes) alongside the tracker
     (0: inline, same rows; ``pinpoint-fg track`` uses 1; the worker is spawned, so a calling script needs the usual
     ``if __name__ == "__main__":`` guard).
+    ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
+    noise file or the defaults.
     """
     out = prepare_output_dir(out, overwrite, "result")
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
+    if robust is not None:
+        noise = (noise or NoiseConfig()).with_robust(robust)
     config = tracker_config(recording, method, particles, window, noise, disable, seed)
     tracker = make_tracker(method, config)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]

@@ -164,7 +164,13 @@ def test_recovers_when_gtsam_raises() -> None:
 
 def test_reseeds_from_a_hopeless_track() -> None:
     seq = synthetic_sequence(3, seed=16)
-    tr = MapTracker(_config())
+    # Gaussian losses: with the default robust conic the smoother follows this jump by itself
+    # (measured 0.53 mm from the jumped pose, no re-seed), so the stuck track this test needs does not happen
+    from dataclasses import replace
+
+    from pinpoint_fg.noise import NoiseConfig, parse_robust_spec
+
+    tr = MapTracker(replace(_config(), noise=NoiseConfig().with_robust(parse_robust_spec("none"))))
     tr.step(seq.observations[0])
     # the needle jumps 12 mm between frames with kinematics that do not see it: the motion factor
     # holds the old pose and the frame cannot be explained

@@ -142,8 +142,9 @@ def test_implausible_threshold() -> None:
     assert lik.dim > 0
     nll_true = float(lik.nll(seq.cam_T_needle[0])[0])
     assert not implausible(nll_true, lik)
-    assert implausible(0.5 * 25.0 * lik.dim * 1.01, lik)
-    assert not implausible(0.5 * 25.0 * lik.dim * 0.99, lik)
+    thr = lik.loss_at_rms(5.0)  # 1/2 25 m without robust losses (tests/test_likelihood_robust.py)
+    assert implausible(thr * 1.01, lik)
+    assert not implausible(thr * 0.99, lik)
     assert implausible(np.inf, lik)
     empty = FrameLikelihood(Observation(frame=0, t_s=0.0), _config().model)
     assert empty.dim == 0 and not implausible(1e9, empty)

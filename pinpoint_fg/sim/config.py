@@ -72,6 +72,10 @@ class SimConfig:
     """Range of the semi-axes of false-positive ellipses, pixels (uniform)."""
     fp_blob_min_distance_px: float = 25.0
     """False-positive blobs are placed at least this far from the needle's projection, pixels."""
+    mask_spur_prob: float = 0.0
+    """Probability that a mask carries a spur (a second one with this probability again); 0 = none (default)."""
+    mask_spur_length_px: tuple[float, float] = (20.0, 35.0)
+    """Range of spur lengths, pixels (uniform): wire-wide branches off the band, i.e. skeleton outliers."""
     grasp_position_sigma_m: tuple[float, float, float] = (0.41e-3, 0.44e-3, 1.00e-3)
     """Marginal std of the recorded grasp position error, camera axes x, y, z, metres (paper Table I)."""
     perpendicular_sigma: float = 0.138
@@ -93,7 +97,7 @@ class SimConfig:
         _positive("frame_rate_hz", self.frame_rate_hz)
         if not (isinstance(self.mask_every, int) and self.mask_every >= 1):
             raise ValueError(f"SimConfig.mask_every must be an integer >= 1, got {self.mask_every!r}")
-        for name in ("tip_sigma_px", "tail_sigma_px", "fp_blob_axes_px"):
+        for name in ("tip_sigma_px", "tail_sigma_px", "fp_blob_axes_px", "mask_spur_length_px"):
             v = tuple(float(x) for x in getattr(self, name))
             if len(v) != 2:
                 raise ValueError(f"SimConfig.{name} must have 2 entries, got {len(v)}")
@@ -108,7 +112,9 @@ class SimConfig:
         for x in g:
             _positive("grasp_position_sigma_m", x)
         object.__setattr__(self, "grasp_position_sigma_m", g)
-        for name in ("keypoint_miss_prob", "mask_miss_prob", "fp_blob_prob"):
+        if self.mask_spur_length_px[0] > self.mask_spur_length_px[1]:
+            raise ValueError("SimConfig.mask_spur_length_px must be (min, max)")
+        for name in ("keypoint_miss_prob", "mask_miss_prob", "fp_blob_prob", "mask_spur_prob"):
             _probability(name, getattr(self, name))
         for name in (
             "keypoint_margin_px", "mask_noise_length_px", "mask_min_half_width_px", "fp_blob_min_distance_px",

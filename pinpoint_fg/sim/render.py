@@ -17,6 +17,11 @@ Masks (what a segmentation network would output, 10 Hz)
     ``fp_blob_min_distance_px`` away from the needle's projection; the blobs are returned so
     tests can tell them apart. Self-intersecting bands (a nearly edge-on arc folds back on
     itself in the image) are filled correctly because the quadrilaterals are drawn one by one.
+    Optionally (``spur_prob`` > 0; off by default, and then no random numbers are drawn for it)
+    a mask gets up to two *spurs*: wire-wide straight branches (length uniform in
+    ``spur_length_px``, 20-35 px) leaving the band at a random visible point, within ±60° of
+    its normal — a segmenter bleeding into a thread or a tissue fold; after thinning they
+    become skeleton branches whose pixels lie up to the spur length off the needle's conic.
 
 Images
     A static tissue-like background (pink-red colour noise at three scales, deterministic per
@@ -131,6 +136,8 @@ def render_mask(
     fp_blob_prob: float,
     fp_blob_axes_px: tuple[float, float],
     fp_blob_min_distance_px: float,
+    spur_prob: float = 0.0,
+    spur_length_px: tuple[float, float] = (20.0, 35.0),
 ) -> tuple[np.ndarray, list[Blob]]:
     """A noisy segmentation mask (module docstring): uint8 ``(H, W)`` 0/255 and the false-positive blobs.
 
@@ -158,6 +165,9 @@ def render_mask(
         left = shifted + np.maximum(hw[sl] + dl[sl], min_half_width_px)[:, None] * normal
         right = shifted - np.maximum(hw[sl] + dr[sl], min_half_width_px)[:, None] * normal
         fill_band(mask, left, right, 255)
+    if spur_prob > 0:
+        _draw_spurs(mask, px, hw, visible, rng.uniform(0.0, 1.0, (2, 4)), spur_prob, spur_length_px,
+                    min_half_width_px)
     blobs: list[Blob] = []
     if fp_blob_prob > 0:
         vis_px = px[np.asarray(visible, bool)]
@@ -185,6 +195,28 @@ def render_mask(
                 blobs.append(blob)
                 break
     return mask, blobs
+
+
+def _draw_spurs(mask: np.ndarray, px: np.ndarray, hw: np.ndarray, visible: np.ndarray, u: np.ndarray,
+                prob: float, length_px: tuple[float, float], min_half_width_px: float) -> None:
+    """Up to two spurs (``u`` (2, 4) uniforms: go, where, angle, length) off the visible band, in place."""
+    idx = np.flatnonzero(np.asarray(visible, bool))
+    if idx.shape[0] < 3:
+        return
+    tan = np.gradient(px, axis=0)
+    for b in range(2):
+        if u[b, 0] >= prob or (b == 1 and u[0, 0] >= prob):
+            break
+        i = int(idx[min(int(u[b, 1] * idx.shape[0]), idx.shape[0] - 1)])
+        t = tan[i] / max(float(np.linalg.norm(tan[i])), 1e-12)
+        a = (u[b, 2] - 0.5) * (2.0 * math.pi / 3.0) + (0.0 if u[b, 2] < 0.5 else math.pi)  # ±60° of ±normal
+        n = np.array([-t[1], t[0]])
+        d = math.cos(a) * n + math.sin(a) * t
+        end = px[i] + (length_px[0] + (length_px[1] - length_px[0]) * u[b, 3]) * d
+        w = max(2.0 * max(float(hw[i]), min_half_width_px), 1.0)
+        p0 = np.rint(px[i] * _SCALE).astype(np.int32)
+        p1 = np.rint(end * _SCALE).astype(np.int32)
+        cv2.line(mask, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])), 255, int(round(w)), cv2.LINE_8, _SHIFT)
 
 
 def tissue_background(width: int, height: int, seed: int) -> np.ndarray:

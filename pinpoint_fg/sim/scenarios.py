@@ -546,6 +546,7 @@ def _iter_frames(run: SimRun, pend: _Pending) -> Iterator[tuple[FrameRecord, np.
                 cfg.camera, run.cam_T_needle[k], cfg.needle, run.arc_theta, run.visible[k], pend.rng_mask,
                 cfg.mask_centreline_sigma_px, cfg.mask_edge_sigma_px, cfg.mask_noise_length_px,
                 cfg.mask_min_half_width_px, cfg.fp_blob_prob, cfg.fp_blob_axes_px, cfg.fp_blob_min_distance_px,
+                spur_prob=cfg.mask_spur_prob, spur_length_px=cfg.mask_spur_length_px,
             )
             if not missed and np.any(m):
                 mask = m

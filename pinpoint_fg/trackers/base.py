@@ -17,7 +17,7 @@ import numpy as np
 from factors.geometry import NeedleModel, PinholeCamera
 from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
-from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.noise import NoiseConfig, format_robust
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior_modes import Mode
 
@@ -70,6 +70,8 @@ def implausible(best_nll: float, lik: FrameLikelihood, rms_sigma: float = IMPLAU
     ``rms_sigma`` (5) standard deviations off on average, far outside chi-square's range for every
     ``m`` (for m = 2 the chance is e^-25, for m = 200 it is nil) but still tolerant of a moderately
     mis-calibrated noise model. The cheirality penalty is part of ``nll`` and counts against it.
+    With robust losses the threshold is the same statement in their units:
+    :meth:`~pinpoint_fg.likelihood.FrameLikelihood.loss_at_rms` (every block ``rms_sigma`` off).
     A frame without residuals (``m = 0``: no image evidence, no kinematics) can judge nothing and
     returns False; a non-finite ``best_nll`` returns True.
     """
@@ -77,7 +79,7 @@ def implausible(best_nll: float, lik: FrameLikelihood, rms_sigma: float = IMPLAU
         return True
     if lik.dim == 0:
         return False
-    return bool(best_nll > 0.5 * rms_sigma**2 * lik.dim)
+    return bool(best_nll > lik.loss_at_rms(rms_sigma))
 
 
 
@@ -138,7 +140,7 @@ class Tracker(abc.ABC):
         """JSON-serialisable settings written to result.json."""
         c = self.config
         return {"method": self.method, "particles": c.particles, "window": c.window, "seed": c.seed,
-                "disabled": list(c.switches.disabled())}
+                "disabled": list(c.switches.disabled()), "robust": format_robust(c.noise.robust)}
 
     def grasper_motion(self, observation: Observation) -> np.ndarray | None:
         """``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` when both are known, else None; remembers frame k."""

@@ -36,7 +36,8 @@ same statistic the particle methods report, applied to the Gaussian. Fixed draws
 deterministic and smooth from frame to frame (Monte-Carlo error ~2 % at 2000 draws).
 
 **Report.** The newest pose as the single particle; ``log_posterior`` is minus GTSAM's window
-error ``1/2 sum |whitened residual|^2`` at the optimum (before the expired pose is marginalised,
+error ``1/2 sum |whitened residual|^2`` (``rho(|e|)`` for the factors with a robust loss, see
+:mod:`factors.robust`) at the optimum (before the expired pose is marginalised,
 up to a constant); ``iterations`` are the smoother's Levenberg-Marquardt iterations; with
 ``L > 1`` also the smoothed pose of frame ``k - L + 1`` (the oldest still in the window).
 

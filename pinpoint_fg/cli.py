@@ -14,7 +14,7 @@ from pinpoint_fg.errors import InputError
 
 METHODS = ("svn", "svgd", "pf", "map")
 SWITCHES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
-SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration")
+SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration", "symmetric", "drive", "kinfault", "snapshots")
 
 
 def _disable_list(text: str) -> tuple[str, ...]:

@@ -8,7 +8,9 @@ incremental smoother has known marginalisation bugs). Per frame ``k`` the update
 * a :class:`factors.gtsam_factors.MotionFactor` ``Log((D x_{k-1})^-1 x_k)`` with the grasper's
   measured motion ``D`` and the process noise ``Q`` (``config.noise["motion"]``), or ``D = I``
   and the random walk :data:`pinpoint_fg.window.RANDOM_WALK_SIGMA` when the kinematics of either
-  frame are missing or the motion switch is off;
+  frame are missing, on a kinematic fault, or when the motion switch is off; either covariance is
+  multiplied by the elapsed-time ``scale`` of :meth:`pinpoint_fg.trackers.base.Tracker.motion_input`
+  (:mod:`pinpoint_fg.kinematics_check`, the decision every tracker shares);
 * the initial value ``D x_{k-1}`` (the previous estimate moved by the grasper).
 
 The first frame's initial value is the best mode of :func:`pinpoint_fg.init.seed_particles`
@@ -233,12 +235,24 @@ class MapTracker(Tracker):
         C = np.asarray(C, dtype=float)
         return 0.5 * (C + C.T), used_fallback
 
+    def _motion_model(self, delta: np.ndarray | None, scale: float) -> tuple[np.ndarray, gtsam.noiseModel.Base]:
+        """``(D, noise)`` of the motion factor: the grasper's motion with ``scale * Q``, or the identity
+        with ``scale *`` the random walk (no kinematics, a kinematic fault, or the motion switch off)."""
+        if delta is None or not self.config.switches.motion:
+            if scale == 1.0:
+                return np.eye(4), self._walk_noise
+            return np.eye(4), gtsam.noiseModel.Diagonal.Sigmas(RANDOM_WALK_SIGMA * np.sqrt(scale))
+        if scale == 1.0:
+            return delta, self.config.noise["motion"].gtsam_model()
+        return delta, gtsam.noiseModel.Gaussian.Covariance(scale * self.config.noise.process_cov)
+
     # ------------------------------------------------------------------ step
     def step(self, observation: Observation) -> Estimate:
         """Add the frame to the smoother, optimise, report the newest pose and its marginal (module docstring)."""
         t0 = time.perf_counter()
-        lik = FrameLikelihood(observation, self._model)
-        delta = self.grasper_motion(observation)
+        motion = self.motion_input(observation)
+        lik = FrameLikelihood(motion.observation, self._model)
+        delta = motion.delta
         key = self._key + 1
         frame_factors = lik.gtsam_factors(key)
         recovered = 0
@@ -247,10 +261,7 @@ class MapTracker(Tracker):
             result = self._restart(frame_factors, key, self._seed_pose(lik))
         else:
             assert self._newest is not None
-            if delta is None or not self.config.switches.motion:
-                D, noise = np.eye(4), self._walk_noise
-            else:
-                D, noise = delta, self.config.noise["motion"].gtsam_model()
+            D, noise = self._motion_model(delta, motion.scale)
             new_factors = [*frame_factors, MotionFactor(key - 1, key, D, noise)]
             cam_T_init = D @ self._newest
             g = _graph(new_factors)
@@ -301,5 +312,5 @@ class MapTracker(Tracker):
             weights=None,
             smoothed=smoothed,
             reseeded=reseeded,
-            extra={"recovered": recovered, "window_error": error},
+            extra={"recovered": recovered, "window_error": error, **self.kinematics_extra(motion)},
         )

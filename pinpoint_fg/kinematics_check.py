@@ -67,7 +67,6 @@ from scipy import stats
 from factors.lie import se3_exp, se3_inverse, se3_log
 from pinpoint_fg.observation import Observation
 
-
 #: Covariance of the constant-velocity residual in units of Q: it differences two measured motions,
 #: and for white measurement noise ``w_k - 2 w_{k-1} + w_{k-2}`` has 3x the variance of one motion
 #: ``w_k - w_{k-1}`` (Q). Measured false-alarm rate at 3 Q: 1 of 8372 clean frames (module docstring).

@@ -26,7 +26,10 @@ from tqdm import tqdm
 
 DEMO_SCENARIOS = ("normal", "rotation", "suturing")
 DEMO_METHODS = ("svn", "pf", "map")
-BENCH_SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration")
+#: Every simulated scenario; a scenario's recording may ask for switches off (``suggested_disable``,
+#: e.g. ``symmetric``: no grasp factors), which demo and benchmark honour.
+BENCH_SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration", "symmetric", "drive", "kinfault",
+                   "snapshots")
 BENCH_METHODS = ("svn", "svgd", "pf", "map")
 
 
@@ -42,13 +45,15 @@ class TrackJob:
     """Result directory."""
     seed: int = 0
     """Tracker seed."""
+    disable: tuple[str, ...] = ()
+    """Likelihood switches turned off (the recording's ``suggested_disable``)."""
 
 
 def _track(job: TrackJob) -> tuple[str, float]:
     from pinpoint_fg.track import track_recording
 
     t0 = time.perf_counter()
-    track_recording(job.run, job.method, job.out, seed=job.seed, progress=False)
+    track_recording(job.run, job.method, job.out, seed=job.seed, disable=job.disable, progress=False)
     return job.out, time.perf_counter() - t0
 
 
@@ -92,13 +97,14 @@ def _simulate(scenarios: tuple[str, ...], frames: int, seed: int, root: Path) ->
 def run_demo(out: Path = Path("demo-output"), frames: int = 240, jobs: int = 2, seed: int = 1) -> Path:
     """Simulate, track with svn/pf/map, evaluate, print the comparison; returns the report directory."""
     from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.track import suggested_disable
 
     out = Path(out)
     t0 = time.perf_counter()
     print(f"[demo] simulating {', '.join(DEMO_SCENARIOS)} ({frames} frames each, seed {seed}) -> {out / 'runs'}")
     runs = _simulate(DEMO_SCENARIOS, frames, seed, out)
-    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m)) for sc in DEMO_SCENARIOS
-                 for m in DEMO_METHODS]
+    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m), disable=suggested_disable(runs[sc]))
+                 for sc in DEMO_SCENARIOS for m in DEMO_METHODS]
     print(f"[demo] tracking {len(jobs_list)} runs on {jobs} process(es)")
     run_tracking(jobs_list, jobs, "demo tracking")
     print("[demo] evaluating (metrics, bimodality vs. ambiguity truth, accuracy floor, figures)")
@@ -118,11 +124,12 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
     other runs sharing the cores.
     """
     from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.track import suggested_disable
 
     out = Path(out)
     runs = _simulate(BENCH_SCENARIOS, frames, seed, out)
-    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m)) for sc in BENCH_SCENARIOS
-                 for m in BENCH_METHODS]
+    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m), disable=suggested_disable(runs[sc]))
+                 for sc in BENCH_SCENARIOS for m in BENCH_METHODS]
     wall = run_tracking(jobs_list, jobs, "benchmark tracking")
     report = evaluate_results([j.out for j in jobs_list], out=out / "report")
     rows = []

@@ -68,6 +68,35 @@ normal is 35-50° off the viewing ray so the arc projects as an open ellipse):
     A random smooth tour (waypoints every 2 s, monotone cubic interpolation) over depth
     30-60 mm, obliquity 0-65°, any in-plane rotation and position (±15 % of the depth off the
     optical axis), rigid grasp, no occlusion: ground truth for noise calibration.
+
+Scenarios of issue 9 (hard cases; none is tuned to make a method fail, the values are the ones above
+or the paper's working range):
+
+``symmetric``
+    Far and shallow: depth ``SYMMETRIC_DEPTH_M`` = 60 mm (the far end of the 30-60 mm range the
+    calibration tour covers), needle normal ``SYMMETRIC_OBLIQUITY_DEG`` = 65° off the viewing ray
+    (a grazing view of the needle plane), slow free motion (1 mm/s, ±3°, rigid grasp), and the tip
+    detector never fires: the tail and the backbone alone, where the circle's two poses are hardest
+    to tell apart. Meant to be tracked with the grasp factors off (they would settle the circle):
+    recording.json says so in ``suggested_disable`` (:data:`SUGGESTED_DISABLE`).
+``drive``
+    A bite into a tissue half-space (``suturing``'s geometry, depth 45 mm): approach (0-10 %: 3 mm
+    onto the entry point), then the driver rolls about its shaft — the grasper axis, tilted 20° from
+    the needle normal (``SimConfig.grasper_tilt_rad``), through the needle centre — by 84° (10-80 %,
+    eased), then holds. The tilt makes the needle plane wobble while the tip advances; the base tilt
+    is searched on a 0.25° grid so the needle is exactly edge-on half-way through the drive (76° →
+    90° → 76°). Arc points inside the tissue are hidden, so the tip keypoint is missing once the tip
+    has entered (from ~20 % of the run): the tip enters tissue while the needle turns through
+    edge-on. Rigid grasp, complete kinematics.
+``kinfault``
+    ``normal``'s motion with faulty kinematics (:func:`kinfault_events`): two drop-outs of 0.5-1 s
+    (empty grasper columns) and one re-registration jump of ``KINFAULT_JUMP_M`` = 4 mm (a random
+    direction, the recorded ``cam_T_grasper`` only: the needle does not jump) that persists to the
+    end. recording.json lists them under ``simulator.kinematics_missing`` / ``registration_jump``.
+``snapshots``
+    Stills ``SNAPSHOT_DT_S`` = 0.5 s apart (2 Hz, a mask on every frame: :func:`scenario_config`),
+    free motion at 5 mm/s with ±20° rotations (~2.5 mm and 9° between frames, depth 42-56 mm),
+    rigid grasp, no kinematics at all.
 """
 
 from __future__ import annotations

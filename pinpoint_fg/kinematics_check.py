@@ -87,6 +87,8 @@ class KinematicsCheckConfig:
     """Largest multiplier of the per-frame covariance (elapsed reference frames)."""
     correct_registration: bool = True
     """Remove a detected jump from the later absolute grasper poses (a re-registration), else only re-reference."""
+    detect_jumps: bool = True
+    """Run the jump test (False: every measured motion is applied, as before fault handling; for comparisons)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.reference_dt_s) and self.reference_dt_s > 0):
@@ -165,7 +167,7 @@ class KinematicsMonitor:
         chi2 = float("nan")
         if hist:
             t1, G1 = hist[-1]
-            if 0.0 < t - t1 <= cfg.max_test_gap_s:
+            if cfg.detect_jumps and 0.0 < t - t1 <= cfg.max_test_gap_s:
                 pred, c = G1, 1.0
                 if len(hist) >= 2 and t1 > hist[-2][0]:
                     t0, G0 = hist[-2]

@@ -142,7 +142,8 @@ class Tracker(abc.ABC):
                 "disabled": list(c.switches.disabled()),
                 "kinematics_check": {"reference_dt_s": k.reference_dt_s, "jump_quantile": k.jump_quantile,
                                      "max_test_gap_s": k.max_test_gap_s, "max_scale": k.max_scale,
-                                     "correct_registration": k.correct_registration}}
+                                     "correct_registration": k.correct_registration,
+                                     "detect_jumps": k.detect_jumps}}
 
     def motion_input(self, observation: Observation) -> MotionInput:
         """Frame k's motion input, the same decision for every method (:mod:`pinpoint_fg.kinematics_check`).

@@ -44,16 +44,17 @@ arm between grasp point and needle centre (``|omega| r`` ~ 0.1 mm at 0.02 rad, b
 so the hypotheses re-anchor on the image instead of being dragged 4 mm by a jump the needle did
 not make), the jump is taken as a change of registration and removed from this and every later
 absolute grasper pose (``G <- J^-1 G``; ``correct_registration``), so the grasp-position factor
-stays unbiased. ``J`` is the *translation* ``p_k - p_pred`` only: one frame's rotation residual
-is dominated by the recorded orientation's noise (the simulator's perpendicularity angle alone
-has 0.8 deg of white noise per frame), and a rotation about the camera origin estimated from it
-would move every later grasp point by ``angle x 45 mm`` ~ 1 mm (measured: 1.5 mm), while the
-translation of the jump is known to ~0.1 mm. A rotational re-registration is therefore only
-re-referenced, not corrected, and biases the perpendicularity factor (limitation). and the grasper is re-referenced at
-the corrected pose so the following frames' relative motions are used normally. Without the
-correction the velocity history restarts at the raw pose and the absolute grasp factors see the
-offset. A false alarm costs one frame without motion input and a registration "correction" of
-the size of that frame's unexplained motion.
+stays unbiased, and the grasper is re-referenced at the corrected pose so the following frames'
+relative motions are used normally. ``J`` is the *translation* ``p_k - p_pred`` only: one
+frame's rotation residual is dominated by the recorded orientation's noise (the simulator's
+perpendicularity angle alone has 0.8 deg of white noise per frame), and a rotation about the
+camera origin estimated from it would move every later grasp point by ``angle x 45 mm`` ~ 1 mm
+(measured: 1.5 mm), while the translation of the jump is recovered to ~0.3 mm (6 seeds: at most
+0.4 mm per axis). A rotational re-registration is therefore only re-referenced, not corrected,
+and biases the perpendicularity factor (limitation). Without ``correct_registration`` the
+velocity history restarts at the raw pose and the absolute grasp factors see the offset. A false
+alarm costs one frame without motion input and a registration "correction" of the size of that
+frame's unexplained motion.
 """
 
 from __future__ import annotations

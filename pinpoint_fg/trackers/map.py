@@ -46,12 +46,14 @@ up to a constant); ``iterations`` are the smoother's Levenberg-Marquardt iterati
 (an indeterminate system while optimising or marginalising), the smoother is rebuilt from the
 last estimate: a Gaussian prior at the previous pose with its last marginal covariance, this
 frame's motion and measurement factors, and a weak prior on the new pose (if that raises too, a
-fresh start at the predicted pose). If ``Marginals`` raises, it is retried with weak priors
-(``prior_sigma``) on every pose of the window, and failing that the weak prior's covariance is
-reported. Both count in ``Estimate.extra["recovered"]``. When the estimate explains the frame
-implausibly badly (:func:`pinpoint_fg.trackers.base.implausible`, the criterion every tracker
-criterion) the smoother is restarted from a fresh seeding of the frame (``Estimate.reseeded``);
-the smoothed output then pauses until the new window holds ``L`` frames again. Graph keys are
+fresh start at the predicted pose, and if even that raises — a prediction far from the frame, as
+between snapshots 0.5 s apart — a fresh seeding of the frame, ``Estimate.reseeded``). If
+``Marginals`` raises, it is retried with weak priors (``prior_sigma``) on every pose of the
+window, and failing that the weak prior's covariance is reported. Both count in
+``Estimate.extra["recovered"]``. When the estimate explains the frame implausibly badly
+(:func:`pinpoint_fg.trackers.base.implausible`, the criterion every tracker shares) the smoother
+is restarted from a fresh seeding of the frame (``Estimate.reseeded``); the smoothed output then
+pauses until the new window holds ``L`` frames again. Graph keys are
 never iterated as temporary ``KeySet`` objects (GTSAM_NOTES §6).
 """
 
@@ -275,7 +277,11 @@ class MapTracker(Tracker):
                 try:
                     result = self._rebuild(new_factors, key, cam_T_init)
                 except RuntimeError:  # the previous pose's prior is the problem: start over from here
-                    result = self._restart(frame_factors, key, cam_T_init)
+                    try:
+                        result = self._restart(frame_factors, key, cam_T_init)
+                    except RuntimeError:  # the prediction itself is unusable (e.g. a far snapshot): re-seed
+                        result = self._restart(frame_factors, key, self._seed_pose(lik))
+                        reseeded = True
         assert self._smoother is not None
         est = self._smoother.calculateEstimatePose3(key).matrix()
         if self.map.reseed and key > self._first_key and implausible(float(lik.nll(est)[0]), lik):

@@ -15,7 +15,7 @@ from pinpoint_fg.errors import InputError
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
 SWITCHES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
-SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration")
+SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration", "symmetric", "drive", "kinfault", "snapshots")
 OVERWRITE_HELP = "write into a non-empty --out (replacing what this command writes there)"
 
 

@@ -27,7 +27,10 @@ from tqdm import tqdm
 
 DEMO_SCENARIOS = ("normal", "rotation", "suturing")
 DEMO_METHODS = ("svn", "pf", "map")
-BENCH_SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration")
+#: Every simulated scenario; a scenario's recording may ask for switches off (``suggested_disable``,
+#: e.g. ``symmetric``: no grasp factors), which demo and benchmark honour.
+BENCH_SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration", "symmetric", "drive", "kinfault",
+                   "snapshots")
 BENCH_METHODS = ("svn", "svgd", "pf", "map", "mht")
 
 
@@ -43,6 +46,8 @@ class TrackJob:
     """Result directory."""
     seed: int = 0
     """Tracker seed."""
+    disable: tuple[str, ...] = ()
+    """Likelihood switches turned off (the recording's ``suggested_disable``)."""
 
 
 def _track(job: TrackJob) -> tuple[str, float]:
@@ -50,7 +55,8 @@ def _track(job: TrackJob) -> tuple[str, float]:
 
     t0 = time.perf_counter()
     # job.out lies under the demo's/benchmark's OUT, which run_demo/run_benchmark checked (overwrite or empty)
-    track_recording(job.run, job.method, job.out, seed=job.seed, progress=False, overwrite=True)
+    track_recording(job.run, job.method, job.out, seed=job.seed, disable=job.disable, progress=False,
+                    overwrite=True)
     return job.out, time.perf_counter() - t0
 
 
@@ -99,13 +105,14 @@ def run_demo(out: Path = Path("demo-output"), frames: int = 240, jobs: int = 2, 
     """
     from pinpoint_fg.eval.report import evaluate_results
     from pinpoint_fg.io.outdir import prepare_output_dir
+    from pinpoint_fg.track import suggested_disable
 
     out = prepare_output_dir(out, overwrite, "demo output")
     t0 = time.perf_counter()
     print(f"[demo] simulating {', '.join(DEMO_SCENARIOS)} ({frames} frames each, seed {seed}) -> {out / 'runs'}")
     runs = _simulate(DEMO_SCENARIOS, frames, seed, out)
-    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m)) for sc in DEMO_SCENARIOS
-                 for m in DEMO_METHODS]
+    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m), disable=suggested_disable(runs[sc]))
+                 for sc in DEMO_SCENARIOS for m in DEMO_METHODS]
     print(f"[demo] tracking {len(jobs_list)} runs on {jobs} process(es)")
     run_tracking(jobs_list, jobs, "demo tracking")
     print("[demo] evaluating (metrics, bimodality vs. ambiguity truth, accuracy floor, figures)")
@@ -142,11 +149,12 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
     """
     from pinpoint_fg.eval.report import evaluate_results
     from pinpoint_fg.io.outdir import prepare_output_dir
+    from pinpoint_fg.track import suggested_disable
 
     out = prepare_output_dir(out, overwrite, "benchmark output")
     runs = _simulate(BENCH_SCENARIOS, frames, seed, out)
-    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m)) for sc in BENCH_SCENARIOS
-                 for m in BENCH_METHODS]
+    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m), disable=suggested_disable(runs[sc]))
+                 for sc in BENCH_SCENARIOS for m in BENCH_METHODS]
     wall = run_tracking(jobs_list, jobs, "benchmark tracking")
     report = evaluate_results([j.out for j in jobs_list], out=out / "report")
     rows = []

@@ -183,6 +183,15 @@ def modes_from_particles(
     def peak(c: np.ndarray) -> int:
         return int(c[np.argmin(rank[c])])
 
+    # a cluster of zero-weight particles (PF weights underflowed to 0) carries no mass: it is not a mode
+    empty = [c for c in clusters if not w[c].sum() > 0]
+    if empty:
+        clusters = [c for c in clusters if w[c].sum() > 0]
+        for c in empty:
+            d = [float(np.linalg.norm(Z[peak(k)] - Z[peak(c)])) for k in clusters]
+            j = int(np.argmin(d))
+            clusters[j] = np.concatenate([clusters[j], c])
+
     merged = True
     while merged and len(clusters) > 1:  # peaks closer than MIN_SEPARATION are one mode (lightest first)
         merged = False

@@ -22,7 +22,7 @@ from pinpoint_fg.eval.bimodality import assess_bimodality
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording import Recording, read_recording
 from pinpoint_fg.io.result import FrameEstimate, ResultWriter
-from pinpoint_fg.likelihood import Switches
+from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.posterior_summary import modes_of_estimate, posterior_columns
@@ -74,6 +74,20 @@ def tracker_config(recording: Recording, method: str, particles: int | None = No
         camera=recording.info.camera, needle=recording.info.needle, noise=noise or NoiseConfig(),
         switches=Switches.from_disabled(tuple(disable)), particles=n, window=int(window), seed=int(seed),
     )
+
+
+def suggested_disable(run: str | Path) -> tuple[str, ...]:
+    """The switches a recording asks to be tracked without (recording.json ``suggested_disable``, a list of
+    ``--disable`` names; absent: none). ``demo`` and ``benchmark`` honour it; ``track`` uses its own ``--disable``."""
+    path = Path(run) / "recording.json"
+    value = read_recording(run).info.extra.get("suggested_disable", [])
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise InputError('key "suggested_disable" must be a list of switch names', file=path)
+    unknown = [v for v in value if v not in SWITCH_NAMES]
+    if unknown:
+        choices = ", ".join(SWITCH_NAMES)
+        raise InputError(f'key "suggested_disable": unknown switch(es) {unknown}; choose from {choices}', file=path)
+    return tuple(value)
 
 
 def bimodality_verdict(particles: np.ndarray, T_map: np.ndarray, weights: np.ndarray | None) -> bool:

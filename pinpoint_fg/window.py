@@ -164,17 +164,23 @@ class Window:
         frame = self.frames[-1]
         self.start(cam_T_needle, frame, prior_sigma)
 
-    def push(self, frame: FrameLikelihood, cam_delta: np.ndarray | None, use_motion: bool) -> None:
+    def push(self, frame: FrameLikelihood, cam_delta: np.ndarray | None, use_motion: bool,
+             process_scale: float = 1.0) -> None:
         """Append a frame: predict the newest pose by ``cam_delta`` and slide (marginalise) if over length.
 
         ``cam_delta`` None (kinematics missing) or ``use_motion`` False gives an identity motion
-        with the random-walk noise.
+        with the random-walk noise. ``process_scale`` multiplies the motion term's covariance
+        (elapsed reference frames, :mod:`pinpoint_fg.kinematics_check`): ``W <- W / sqrt(scale)``.
         """
         assert self.poses is not None
+        if not (np.isfinite(process_scale) and process_scale > 0):
+            raise ValueError(f"process_scale must be positive, got {process_scale!r}")
         if cam_delta is None or not use_motion:
             D, W = np.eye(4), self.walk_W
         else:
             D, W = np.asarray(cam_delta, dtype=float), self.motion_W
+        if process_scale != 1.0:
+            W = W / np.sqrt(process_scale)
         pred = D @ self.poses[-1]
         self.poses = np.concatenate([self.poses, pred[None]], axis=0)
         self.frames.append(frame)

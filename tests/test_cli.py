@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pinpoint_fg.cli import main
+from pinpoint_fg.demo import BENCH_SCENARIOS
 from pinpoint_fg.io.result import read_modes, read_result
 
 
@@ -109,9 +110,17 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert (tmp_path / "demo" / "report" / "summary.csv").exists()
     assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2"]) == 0
     text = (tmp_path / "bench" / "benchmark.txt").read_text()
-    assert "median vs pf" in text and text.count("\n") == 1 + 5 * 5 and " mht " in text
+    assert "median vs pf" in text and text.count("\n") == 1 + len(BENCH_SCENARIOS) * 5 and " mht " in text
+    assert "symmetric" in text and "snapshots" in text
+    # the symmetric run asks to be tracked without the grasp factors; the benchmark honours it
+    for method, expected in (("svn", ["grasp-position", "grasp-perpendicular"]), ("map", ["grasp-position",
+                                                                                        "grasp-perpendicular"])):
+        settings = json.loads((tmp_path / "bench" / "results" / "symmetric" / method / "result.json").read_text())
+        assert sorted(settings["settings"]["disabled"]) == sorted(expected)
+    settings = json.loads((tmp_path / "bench" / "results" / "normal" / "svn" / "result.json").read_text())
+    assert settings["settings"]["disabled"] == []
     lat = json.loads((tmp_path / "bench" / "latency.json").read_text())
-    assert set(lat["scenarios"]) == {"slow", "normal", "rotation", "suturing", "calibration"}
+    assert set(lat["scenarios"]) == set(BENCH_SCENARIOS)
     grid = {(r["particles"], r["window"]) for r in lat["grid"]}
     assert grid == {(n, w) for n in (10, 25, 50, 100) for w in (1, 3, 5)}
     normal = lat["scenarios"]["normal"]["methods"]
@@ -119,6 +128,20 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert lat["track"]["ratio"] > 0 and (tmp_path / "bench" / "latency_vs_n_l.png").stat().st_size > 0
     assert "SVN cost vs particles N and window L" in capsys.readouterr().out
 
+
+def test_simulate_new_scenarios_and_suggested_disable(tmp_path: Path) -> None:
+    from pinpoint_fg.errors import InputError
+    from pinpoint_fg.track import suggested_disable
+
+    for scenario in ("symmetric", "drive", "kinfault", "snapshots"):
+        assert main(["simulate", "--scenario", scenario, "--frames", "4", "--out", str(tmp_path / scenario)]) == 0
+    assert suggested_disable(tmp_path / "symmetric") == ("grasp-position", "grasp-perpendicular")
+    assert suggested_disable(tmp_path / "drive") == ()
+    doc = json.loads((tmp_path / "drive" / "recording.json").read_text())
+    doc["suggested_disable"] = ["grasp"]
+    (tmp_path / "drive" / "recording.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="suggested_disable"):
+        suggested_disable(tmp_path / "drive")
 
 
 def test_output_to_a_closed_pipe_is_not_a_traceback(runs: dict[str, Path]) -> None:

@@ -172,3 +172,18 @@ def test_peaks_nearer_than_the_resolution_are_one_mode(sep: float, n_modes: int)
     modes = modes_from_particles(np.concatenate([P1, P2]), np.concatenate([l1, l2]))
     assert len(modes) == n_modes
     assert [m.weight for m in modes] == pytest.approx([1.0] if n_modes == 1 else [0.6, 0.4])
+
+
+def test_zero_weight_particles_form_no_mode() -> None:
+    """PF weights can underflow to exactly 0: a cluster of such particles holds no mass and is no mode."""
+    rng = np.random.default_rng(5)
+    base = np.eye(4)
+    base[2, 3] = 0.05
+    near = base @ se3_exp(rng.normal(size=(30, 6)) * np.r_[[0.01] * 3, [1e-4] * 3])
+    far_xi = rng.normal(size=(30, 6)) * np.r_[[0.01] * 3, [1e-4] * 3] + np.r_[0, 0, 2.0, 0, 0, 0]
+    far = base @ se3_exp(far_xi)
+    P = np.concatenate([near, far])
+    w = np.r_[np.full(30, 1 / 30), np.zeros(30)]
+    logp = np.r_[np.zeros(30), np.full(30, -50.0)]
+    modes = modes_from_particles(P, logp, w)
+    assert len(modes) == 1 and np.isclose(modes[0].weight, 1.0)

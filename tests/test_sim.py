@@ -45,7 +45,7 @@ def _chi2_std_bounds(n: float, p: float = 1e-3) -> tuple[float, float]:
 
 
 def test_unknown_scenario_lists_valid_names() -> None:
-    with pytest.raises(ValueError, match="slow, normal, rotation, suturing, calibration"):
+    with pytest.raises(ValueError, match="slow, normal, rotation, suturing, calibration, symmetric, drive"):
         simulate_frames("fast", 10)
     with pytest.raises(ValueError):
         simulate_frames("normal", 0)
@@ -71,10 +71,12 @@ def test_every_scenario_is_well_formed(scenario: str) -> None:
     assert r.cam_T_needle.shape == (F, 4, 4) and r.cam_T_grasper.shape == (F, 4, 4)
     depth = r.cam_T_needle[:, 2, 3]
     assert np.all((depth > 0.025) & (depth < 0.065))
-    # masks only on every third frame; frames.csv's mask cell names exactly those
-    assert all(k % CFG.mask_every == 0 for k in r.masks)
+    # masks only on every third frame (every frame for snapshots); frames.csv's mask cell names exactly those
+    every = r.config.mask_every
+    assert every == (1 if scenario == "snapshots" else CFG.mask_every)
+    assert all(k % every == 0 for k in r.masks)
     assert [f.frame for f in r.frames if f.mask is not None] == sorted(r.masks)
-    assert len(r.masks) >= 0.8 * F / CFG.mask_every
+    assert len(r.masks) >= 0.8 * F / every
     for k, m in r.masks.items():
         assert m.dtype == np.uint8 and m.shape == (1080, 1080) and set(np.unique(m)) <= {0, 255}
         assert r.frames[k].mask == f"masks/{k:06d}.png"
@@ -82,8 +84,9 @@ def test_every_scenario_is_well_formed(scenario: str) -> None:
     nTg = needle_T_grasper(CFG.needle, CFG.grasper_tilt_rad)
     rigid = (r.in_grasp_rad == 0)
     np.testing.assert_allclose(r.cam_T_grasper[rigid], (r.cam_T_needle @ nTg)[rigid], atol=1e-12)
-    # smooth motion: the needle centre never jumps more than 1 mm between frames
-    assert np.max(np.linalg.norm(np.diff(r.cam_T_needle[:, :3, 3], axis=0), axis=1)) < 1e-3
+    # smooth motion: the needle centre never moves faster than 30 mm/s (1 mm per frame at 30 Hz)
+    assert np.max(np.linalg.norm(np.diff(r.cam_T_needle[:, :3, 3], axis=0), axis=1)) < 30e-3 * r.config.dt_s
+    assert np.allclose(np.diff([f.t_s for f in r.frames]), r.config.dt_s)
 
 
 @pytest.mark.parametrize(("scenario", "target_mm_s"), [("slow", 1.0), ("normal", 2.0)])
@@ -422,3 +425,83 @@ def test_written_run_reads_back(tmp_path: Path) -> None:
                 np.testing.assert_array_equal(a, b)
         if f.mask is not None:
             np.testing.assert_array_equal(rec.load_mask(f) != 0, mem.masks[f.frame] != 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# scenarios of issue 9: symmetric, drive, kinfault, snapshots
+
+
+def test_symmetric_is_far_shallow_and_never_shows_the_tip(tmp_path: Path) -> None:
+    r = _run("symmetric", 300, 1)
+    assert all(f.tip_px is None for f in r.frames)
+    assert np.mean([f.tail_px is not None for f in r.frames]) > 0.9
+    assert np.all(r.cam_T_needle[:, 2, 3] > 0.055)
+    assert np.all((r.edge_on_deg > 55.0) & (r.edge_on_deg < 75.0))
+    assert r.info.extra["suggested_disable"] == ["grasp-position", "grasp-perpendicular"]
+    rec = read_recording(simulate("symmetric", 5, 1, out=tmp_path / "run"))
+    assert rec.info.extra["suggested_disable"] == ["grasp-position", "grasp-perpendicular"]
+    assert "suggested_disable" not in _run("normal", 30, 2).info.extra
+
+
+def test_drive_hides_the_tip_in_tissue_while_turning_through_edge_on() -> None:
+    r = _run("drive", 300, 1)
+    tip_in = ~r.visible[:, -1]
+    seen = np.array([f.tip_px is not None for f in r.frames])
+    assert not np.any(seen & tip_in)  # the detector never reports a tip inside the tissue
+    assert tip_in.sum() >= 60
+    inside = np.flatnonzero(tip_in)
+    # the needle passes through edge-on while the tip is in the tissue
+    assert r.edge_on_deg[inside].max() > 88.0
+    assert r.edge_on_deg[inside[0]] < 85.0 and r.edge_on_deg[inside[-1]] < 85.0
+    assert all(f.cam_T_grasper is not None for f in r.frames)
+    m, d = r.tissue_plane
+    assert m @ r.cam_T_needle[0, :3, 3] < d  # the centre starts outside the tissue
+
+
+def test_kinfault_drops_kinematics_in_two_stretches_and_jumps_once(tmp_path: Path) -> None:
+    r = _run("kinfault", 300, 1)
+    missing = np.array([f.cam_T_grasper is None for f in r.frames])
+    np.testing.assert_array_equal(missing, r.kinematics_missing)
+    gaps = r.info.extra["simulator"]["kinematics_missing"]
+    assert len(gaps) == 2
+    for a, b in gaps:
+        assert 0.5 - 1e-9 <= (b - a + 1) * CFG.dt_s <= 1.0 + CFG.dt_s
+        assert missing[a : b + 1].all()
+    jump = r.info.extra["simulator"]["registration_jump"]
+    k = jump["frame"]
+    assert not missing[k - 1 : k + 1].any()
+    # recorded = offset @ (commanded + drawn errors); the offset is a 4 mm translation from frame k on
+    plain = r.cam_T_grasper_recorded.copy()
+    plain[:, :3, 3] -= r.registration_offset[:, :3, 3]
+    np.testing.assert_allclose(plain[:, :3, :3], r.cam_T_grasper[:, :3, :3] @ r.kinematic_errors.rotation, atol=1e-12)
+    np.testing.assert_allclose(plain[:, :3, 3], r.cam_T_grasper[:, :3, 3] + r.kinematic_errors.position_m, atol=1e-12)
+    off = np.linalg.norm(r.registration_offset[:, :3, 3], axis=1)
+    assert np.all(off[:k] == 0.0) and np.allclose(off[k:], 4e-3)
+    step = np.linalg.norm(np.diff(r.cam_T_grasper_recorded[:, :3, 3], axis=0), axis=1)
+    assert step[k - 1] > 3.5e-3 and np.delete(step, k - 1).max() < 1e-3  # only the jump, the needle is smooth
+    assert np.max(np.linalg.norm(np.diff(r.cam_T_needle[:, :3, 3], axis=0), axis=1)) < 0.5e-3
+    # deterministic per seed, different seeds differ
+    again = simulate_frames("kinfault", 300, 1)
+    assert again.info.extra["simulator"]["kinematics_missing"] == gaps
+    np.testing.assert_array_equal(again.cam_T_grasper_recorded, r.cam_T_grasper_recorded)
+    other = _run("kinfault", 300, 2).info.extra["simulator"]
+    assert other["kinematics_missing"] != gaps and other["registration_jump"]["offset_m"] != jump["offset_m"]
+    # written: empty grasper cells in the gaps
+    rec = read_recording(simulate("kinfault", 300, 1, out=tmp_path / "run"))
+    np.testing.assert_array_equal([f.cam_T_grasper is None for f in rec.frames], missing)
+
+
+def test_snapshots_are_half_a_second_apart_with_large_motion_and_no_kinematics(tmp_path: Path) -> None:
+    r = _run("snapshots", 120, 1)
+    t = np.array([f.t_s for f in r.frames])
+    np.testing.assert_allclose(np.diff(t), 0.5)
+    assert all(f.cam_T_grasper is None for f in r.frames)
+    assert r.info.frame_rate_hz == 2.0
+    T = r.cam_T_needle
+    step = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+    R = np.swapaxes(T[:-1, :3, :3], 1, 2) @ T[1:, :3, :3]
+    turn = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert np.mean(step) > 2e-3 and np.mean(turn) > 5.0  # vs ~0.07 mm and < 1 deg per frame at 30 Hz
+    assert len(r.masks) >= 0.9 * 120
+    rec = read_recording(simulate("snapshots", 6, 1, out=tmp_path / "run"))
+    assert rec.info.frame_rate_hz == 2.0 and all(f.cam_T_grasper is None for f in rec.frames)

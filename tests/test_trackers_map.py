@@ -11,7 +11,7 @@ import pytest
 from factors.lie import local
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.trackers.base import TrackerConfig
-from pinpoint_fg.trackers.map import MapConfig, MapTracker, gaussian_q95, live_factors
+from pinpoint_fg.trackers.map import MapConfig, MapSmoother, MapTracker, gaussian_q95, live_factors
 from tests.test_trackers_pf import CAMERA, NEEDLE, observe, pose_error, synthetic_sequence
 
 TIGHT = MapConfig(relative_error_tol=1e-14, absolute_error_tol=1e-14, max_iterations=200)
@@ -160,6 +160,32 @@ def test_recovers_when_gtsam_raises() -> None:
     est = tr.step(seq.observations[3])
     assert est.extra["recovered"] == 0
     assert pose_error(est.cam_T_needle, seq.cam_T_needle[3])[0] < 0.5e-3
+
+
+def test_reseeds_when_even_the_restart_at_the_prediction_raises(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Snapshots 0.5 s apart: the prediction can be so far from the frame that every solve started there raises."""
+    seq = synthetic_sequence(3, seed=15)
+    tr = MapTracker(_config())
+    tr.step(seq.observations[0])
+    tr._branch.smoother = _FailingSmoother()  # noqa: SLF001 - the update raises (and the rebuild, below)
+    restart = MapSmoother.restart
+    starts: list[np.ndarray] = []
+
+    def failing_restart(self: MapSmoother, frame_factors: list, key: int, cam_T_init: np.ndarray,
+                        **kwargs: object):  # noqa: ANN202
+        starts.append(cam_T_init)
+        if len(starts) == 1:  # the restart at the predicted pose
+            raise RuntimeError("Indeterminate linear system detected while working near variable")
+        return restart(self, frame_factors, key, cam_T_init, **kwargs)
+
+    def failing_rebuild(*args: object) -> None:
+        raise RuntimeError("Indeterminate linear system detected while working near variable")
+
+    monkeypatch.setattr(MapSmoother, "restart", failing_restart)
+    monkeypatch.setattr(MapSmoother, "_rebuild", failing_rebuild)
+    est = tr.step(seq.observations[1])
+    assert est.reseeded and len(starts) == 2
+    assert pose_error(est.cam_T_needle, seq.cam_T_needle[1])[0] < 0.5e-3
 
 
 def test_reseeds_from_a_hopeless_track() -> None:

@@ -68,13 +68,42 @@ normal is 35-50° off the viewing ray so the arc projects as an open ellipse):
     A random smooth tour (waypoints every 2 s, monotone cubic interpolation) over depth
     30-60 mm, obliquity 0-65°, any in-plane rotation and position (±15 % of the depth off the
     optical axis), rigid grasp, no occlusion: ground truth for noise calibration.
+
+Scenarios of issue 9 (hard cases; none is tuned to make a method fail, the values are the ones above
+or the paper's working range):
+
+``symmetric``
+    Far and shallow: depth ``SYMMETRIC_DEPTH_M`` = 60 mm (the far end of the 30-60 mm range the
+    calibration tour covers), needle normal ``SYMMETRIC_OBLIQUITY_DEG`` = 65° off the viewing ray
+    (a grazing view of the needle plane), slow free motion (1 mm/s, ±3°, rigid grasp), and the tip
+    detector never fires: the tail and the backbone alone, where the circle's two poses are hardest
+    to tell apart. Meant to be tracked with the grasp factors off (they would settle the circle):
+    recording.json says so in ``suggested_disable`` (:data:`SUGGESTED_DISABLE`).
+``drive``
+    A bite into a tissue half-space (``suturing``'s geometry, depth 45 mm): approach (0-10 %: 3 mm
+    onto the entry point), then the driver rolls about its shaft — the grasper axis, tilted 20° from
+    the needle normal (``SimConfig.grasper_tilt_rad``), through the needle centre — by 84° (10-80 %,
+    eased), then holds. The tilt makes the needle plane wobble while the tip advances; the base tilt
+    is searched on a 0.25° grid so the needle is exactly edge-on half-way through the drive (76° →
+    90° → 76°). Arc points inside the tissue are hidden, so the tip keypoint is missing once the tip
+    has entered (from ~20 % of the run): the tip enters tissue while the needle turns through
+    edge-on. Rigid grasp, complete kinematics.
+``kinfault``
+    ``normal``'s motion with faulty kinematics (:func:`kinfault_events`): two drop-outs of 0.5-1 s
+    (empty grasper columns) and one re-registration jump of ``KINFAULT_JUMP_M`` = 4 mm (a random
+    direction, the recorded ``cam_T_grasper`` only: the needle does not jump) that persists to the
+    end. recording.json lists them under ``simulator.kinematics_missing`` / ``registration_jump``.
+``snapshots``
+    Stills ``SNAPSHOT_DT_S`` = 0.5 s apart (2 Hz, a mask on every frame: :func:`scenario_config`),
+    free motion at 5 mm/s with ±20° rotations (~2.5 mm and 9° between frames, depth 42-56 mm),
+    rigid grasp, no kinematics at all.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -94,7 +123,12 @@ from pinpoint_fg.sim.kinematics import (
 )
 from pinpoint_fg.sim.render import ARC_SAMPLES, Blob, draw_needle, render_mask, tissue_background
 
-SCENARIOS: tuple[str, ...] = ("slow", "normal", "rotation", "suturing", "calibration")
+SCENARIOS: tuple[str, ...] = (
+    "slow", "normal", "rotation", "suturing", "calibration", "symmetric", "drive", "kinfault", "snapshots",
+)
+#: Likelihood switches each scenario is meant to be tracked without (written to recording.json as
+#: ``suggested_disable``; ``demo``/``benchmark`` honour it, ``track`` keeps its explicit ``--disable``).
+SUGGESTED_DISABLE: dict[str, tuple[str, ...]] = {"symmetric": ("grasp-position", "grasp-perpendicular")}
 
 #: In ``rotation``, the tip detector fails beyond this angle between needle normal and viewing ray, degrees.
 ROTATION_TIP_DROPOUT_DEG = 60.0
@@ -122,6 +156,11 @@ class Trajectory:
     """Frames where the recorded kinematics differ from the physical grasper by a slip ``(F,)`` bool."""
     tissue_plane: tuple[np.ndarray, float] | None = None
     """Suturing only: ``(m, d)`` with a camera point x inside the tissue when ``m·x > d``."""
+    kinematics_missing: np.ndarray | None = None
+    """Frames whose kinematics are not recorded ``(F,)`` bool (None: none missing)."""
+    registration_offset: np.ndarray | None = None
+    """``(F, 4, 4)`` camera-frame transform left-multiplied onto the recorded kinematics (a
+    camera-robot re-registration); None: identity."""
 
 
 @dataclass
@@ -172,6 +211,10 @@ class SimRun:
     """False-positive blobs drawn into each mask."""
     tissue_plane: tuple[np.ndarray, float] | None = None
     """Suturing: tissue half-space ``m·x > d`` (camera frame, metres)."""
+    kinematics_missing: np.ndarray | None = None
+    """Frames recorded without kinematics ``(F,)`` bool (empty grasper columns)."""
+    registration_offset: np.ndarray | None = None
+    """``(F, 4, 4)`` re-registration offset included in :attr:`cam_T_grasper_recorded` (identity if none)."""
 
     @property
     def n_frames(self) -> int:
@@ -410,12 +453,135 @@ def _scenario_calibration(cfg: SimConfig, t: np.ndarray, rng: np.random.Generato
     return _rigid(cfg, T @ needle_T_grasper(cfg.needle, cfg.grasper_tilt_rad), n_arc)
 
 
+#: ``symmetric``: needle centre depth (the far end of the 30-60 mm working range), metres.
+SYMMETRIC_DEPTH_M = 0.060
+#: ``symmetric``: angle between the needle normal and the viewing ray (a shallow, grazing view), degrees.
+SYMMETRIC_OBLIQUITY_DEG = 65.0
+#: ``kinfault``: size of the re-registration jump of the recorded grasper pose, metres.
+KINFAULT_JUMP_M = 4.0e-3
+#: ``kinfault``: range of the length of each kinematics drop-out, seconds.
+KINFAULT_GAP_S = (0.5, 1.0)
+#: ``snapshots``: time between frames, seconds (2 Hz: a still every half second).
+SNAPSHOT_DT_S = 0.5
+
+
+def _scenario_symmetric(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, n_arc: int) -> Trajectory:
+    G0 = _base_grasper(cfg, _base_rotation(35.0, SYMMETRIC_OBLIQUITY_DEG, 60.0),
+                       np.array([1.0e-3, -1.0e-3, SYMMETRIC_DEPTH_M]))
+    centre_g = se3_inverse(needle_T_grasper(cfg.needle, cfg.grasper_tilt_rad))[:3, 3]
+    G = _free_motion(rng, t, G0, centre_g, 1.0e-3, math.radians(3.0))
+    traj = _rigid(cfg, G, n_arc)
+    return Trajectory(**{**traj.__dict__, "tip_dropout": np.ones(t.shape[0], bool)})
+
+
+def _scenario_drive(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, n_arc: int) -> Trajectory:
+    nd = cfg.needle
+    F = t.shape[0]
+    T_total = max(float(t[-1]), 1e-9) if F > 1 else 1.0
+    u = t / T_total
+    nTg = needle_T_grasper(nd, cfg.grasper_tilt_rad)
+    sgn = 1.0 if nd.tip_angle_rad >= nd.tail_angle_rad else -1.0
+    # the drive turns the needle about the driver's shaft (the grasper axis z_g, needle frame),
+    # through the needle centre: the needle plane wobbles by the grasper tilt while the tip advances
+    axis_n = nTg[:3, 2]
+    beta, eps, protrude = math.radians(35.0), math.radians(4.0), math.radians(10.0)
+    theta_d0 = nd.tip_angle_rad + sgn * (beta + eps)
+    psi_end = eps + 2.0 * beta + protrude
+    h = nd.radius_m * math.cos(beta)
+    spin = math.degrees(math.pi / 2.0 - theta_d0)
+    u_app, u_drv = 0.1, 0.8
+    w_app = np.clip(u / u_app, 0, 1)
+    w_drv = np.clip((u - u_app) / (u_drv - u_app), 0, 1)
+    psi = sgn * psi_end * _ease(w_drv)
+
+    def turn(angle: np.ndarray) -> np.ndarray:
+        a = np.asarray(angle, float)[..., None] * axis_n
+        return homogeneous(so3_exp(a), np.zeros(a.shape))
+
+    # base tilt: searched (0.25 deg grid) so the needle is seen exactly edge-on half-way through the drive
+    mid = turn(np.array(sgn * psi_end * 0.5))
+    tilts = np.arange(90.0, 140.0 + 1e-9, 0.25)  # past edge-on: the drive turns the plane back through it
+    ang = np.array([_edge_on_deg(homogeneous(_base_rotation(20.0, a, spin), np.array([0.5e-3, 0.0, 0.045])) @ mid)
+                    for a in tilts])
+    tilt = float(tilts[int(np.argmin(np.abs(ang - 90.0)))])
+    T0 = homogeneous(_base_rotation(20.0, tilt, spin), np.array([0.5e-3, 0.0, 0.045]))
+    m = T0[:3, :3] @ np.array([math.cos(theta_d0), math.sin(theta_d0), 0.0])  # inward tissue normal
+    d_plane = float(m @ T0[:3, 3]) + h
+    approach = 3.0e-3 * (1.0 - _ease(w_app))
+    T = T0[None] @ turn(psi)
+    T[:, :3, 3] -= approach[:, None] * m[None, :]
+    theta = nd.arc_angles(n_arc)
+    pts = np.einsum("fij,aj->fai", T[:, :3, :3], nd.point(theta)) + T[:, None, :3, 3]
+    G = T @ nTg
+    return Trajectory(
+        cam_T_needle=T,
+        cam_T_grasper=G,
+        cam_T_grasper_cmd=G.copy(),
+        visible=~(pts @ m > d_plane),
+        tip_dropout=np.zeros(F, bool),
+        in_grasp_rad=np.zeros(F),
+        slipping=np.zeros(F, bool),
+        tissue_plane=(m, d_plane),
+    )
+
+
+def kinfault_events(t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, int, np.ndarray]:
+    """``kinfault``'s faults: missing-kinematics frames ``(F,)``, the jump frame, the jump vector (3,) m.
+
+    Two drop-outs of ``KINFAULT_GAP_S`` (uniform, at most 10 % of the run each) starting at a
+    uniform point of 15-25 % and 60-70 % of the run; the jump at 45 %, in a uniform random
+    direction, of ``KINFAULT_JUMP_M``. Runs shorter than 10 frames get no faults.
+    """
+    F = t.shape[0]
+    missing = np.zeros(F, bool)
+    span = float(t[-1] - t[0]) if F > 1 else 0.0
+    starts = (rng.uniform(0.15, 0.25), rng.uniform(0.60, 0.70))
+    lengths = rng.uniform(*KINFAULT_GAP_S, size=2)
+    direction = rng.standard_normal(3)
+    direction /= np.linalg.norm(direction)
+    if F < 10:
+        return missing, F, KINFAULT_JUMP_M * direction
+    for s0, ln in zip(starts, lengths, strict=True):
+        a = t[0] + s0 * span
+        missing |= (t >= a) & (t < a + min(float(ln), 0.1 * span))
+    return missing, int(round(0.45 * (F - 1))), KINFAULT_JUMP_M * direction
+
+
+def _scenario_kinfault(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, n_arc: int) -> Trajectory:
+    traj = _scenario_normal(cfg, t, rng, n_arc)
+    missing, jump_frame, jump = kinfault_events(t, rng)
+    offset = np.broadcast_to(np.eye(4), (t.shape[0], 4, 4)).copy()
+    offset[jump_frame:, :3, 3] = jump
+    return Trajectory(**{**traj.__dict__, "kinematics_missing": missing, "registration_offset": offset})
+
+
+def _scenario_snapshots(cfg: SimConfig, t: np.ndarray, rng: np.random.Generator, n_arc: int) -> Trajectory:
+    G0 = _base_grasper(cfg, _base_rotation(-20.0, 40.0, 30.0), np.array([0.0, 0.0, 0.045]))
+    centre_g = se3_inverse(needle_T_grasper(cfg.needle, cfg.grasper_tilt_rad))[:3, 3]
+    G = _free_motion(rng, t, G0, centre_g, 5.0e-3, math.radians(20.0))
+    traj = _rigid(cfg, G, n_arc)
+    return Trajectory(**{**traj.__dict__, "kinematics_missing": np.ones(t.shape[0], bool)})
+
+
+def scenario_config(scenario: str, config: SimConfig | None = None) -> SimConfig:
+    """The settings a scenario runs with: ``config`` (default :class:`SimConfig`), with ``snapshots``'
+    frame interval (``SNAPSHOT_DT_S``) and a mask on every frame (a segmenter runs on every still)."""
+    cfg = config or SimConfig()
+    if scenario == "snapshots":
+        cfg = replace(cfg, frame_rate_hz=1.0 / SNAPSHOT_DT_S, mask_every=1)
+    return cfg
+
+
 _BUILDERS: dict[str, Callable[[SimConfig, np.ndarray, np.random.Generator, int], Trajectory]] = {
     "slow": _scenario_slow,
     "normal": _scenario_normal,
     "rotation": _scenario_rotation,
     "suturing": _scenario_suturing,
     "calibration": _scenario_calibration,
+    "symmetric": _scenario_symmetric,
+    "drive": _scenario_drive,
+    "kinfault": _scenario_kinfault,
+    "snapshots": _scenario_snapshots,
 }
 
 
@@ -461,6 +627,24 @@ def image_path(frame: int) -> str:
     return f"images/{frame:06d}.png"
 
 
+def _recording_extra(scenario: str, seed: int, F: int, cfg: SimConfig, traj: Trajectory,
+                     kin_missing: np.ndarray) -> dict:
+    """recording.json's extra keys: the simulator's settings, the kinematic faults, suggested switches."""
+    sim: dict = {"scenario": scenario, "seed": seed, "n_frames": F, "config": cfg.to_json()}
+    if kin_missing.any():
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], kin_missing.astype(int), [0]])))
+        sim["kinematics_missing"] = [[int(a), int(b) - 1] for a, b in zip(edges[::2], edges[1::2], strict=True)]
+    if traj.registration_offset is not None:
+        moved = np.flatnonzero(np.any(np.abs(traj.registration_offset - np.eye(4)) > 0, axis=(1, 2)))
+        if moved.size:
+            k = int(moved[0])
+            sim["registration_jump"] = {"frame": k, "offset_m": traj.registration_offset[k, :3, 3].tolist()}
+    out: dict = {"simulator": sim}
+    if scenario in SUGGESTED_DISABLE:
+        out["suggested_disable"] = list(SUGGESTED_DISABLE[scenario])
+    return out
+
+
 @dataclass
 class _Pending:
     """Per-frame recorded values decided before any mask is rendered."""
@@ -476,7 +660,7 @@ class _Pending:
 def _prepare(scenario: str, n_frames: int, seed: int, config: SimConfig | None) -> tuple[SimRun, _Pending]:
     """Everything but the masks and frame records: trajectory, kinematics, keypoints, labels."""
     _check_args(scenario, n_frames, seed)
-    cfg = config or SimConfig()
+    cfg = scenario_config(scenario, config)
     cam, nd = cfg.camera, cfg.needle
     F = int(n_frames)
     t = np.arange(F) * cfg.dt_s
@@ -490,6 +674,9 @@ def _prepare(scenario: str, n_frames: int, seed: int, config: SimConfig | None) 
         cfg.dt_s, cfg.kin_bias_tau_s, cfg.kin_white_var_fraction,
     )
     recorded = apply_kinematic_errors(traj.cam_T_grasper_cmd, errors)
+    if traj.registration_offset is not None:
+        recorded = traj.registration_offset @ recorded
+    kin_missing = np.zeros(F, bool) if traj.kinematics_missing is None else np.asarray(traj.kinematics_missing, bool)
 
     # keypoints: fixed draws per frame whatever is visible (determinism, independence)
     def keypoint(point_m: np.ndarray, sigma: tuple[float, float], arc_index: int, dropout: np.ndarray):
@@ -507,7 +694,7 @@ def _prepare(scenario: str, n_frames: int, seed: int, config: SimConfig | None) 
         frame_rate_hz=cfg.frame_rate_hz,
         camera=cam,
         needle=nd,
-        extra={"simulator": {"scenario": scenario, "seed": int(seed), "n_frames": F, "config": cfg.to_json()}},
+        extra=_recording_extra(scenario, int(seed), F, cfg, traj, kin_missing),
     )
     run = SimRun(
         scenario=scenario,
@@ -531,6 +718,8 @@ def _prepare(scenario: str, n_frames: int, seed: int, config: SimConfig | None) 
         slipping=traj.slipping,
         edge_on_deg=_edge_on_deg(T),
         tissue_plane=traj.tissue_plane,
+        kinematics_missing=kin_missing,
+        registration_offset=traj.registration_offset,
     )
     return run, _Pending(t, tip_meas, tip_seen, tail_meas, tail_seen, rng_mask)
 
@@ -556,7 +745,7 @@ def _iter_frames(run: SimRun, pend: _Pending) -> Iterator[tuple[FrameRecord, np.
             tip_px=pend.tip_meas[k].copy() if pend.tip_seen[k] else None,
             tail_px=pend.tail_meas[k].copy() if pend.tail_seen[k] else None,
             mask=mask_path(k) if mask is not None else None,
-            cam_T_grasper=run.cam_T_grasper_recorded[k].copy(),
+            cam_T_grasper=None if run.kinematics_missing[k] else run.cam_T_grasper_recorded[k].copy(),
             cam_T_needle_gt=run.cam_T_needle[k].copy(),
             image=None,
             occlusion=run.occlusion[k],

@@ -16,6 +16,7 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera
 from pinpoint_fg.eval.metrics import tangent_spread
+from pinpoint_fg.kinematics_check import KinematicsCheckConfig, KinematicsMonitor, MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig, format_robust
 from pinpoint_fg.observation import Observation
@@ -109,6 +110,8 @@ class TrackerConfig:
     """Window length L (1 = filter)."""
     seed: int = 0
     """Random seed (initial spread, PF noise)."""
+    kinematics: KinematicsCheckConfig = KinematicsCheckConfig()
+    """Elapsed-time scaling of the process noise and the kinematic jump test (:mod:`pinpoint_fg.kinematics_check`)."""
 
     @property
     def model(self) -> MeasurementModel:
@@ -124,7 +127,7 @@ class Tracker(abc.ABC):
     def __init__(self, config: TrackerConfig) -> None:
         self.config = config
         self.rng = np.random.default_rng(config.seed)
-        self._prev_grasper: np.ndarray | None = None
+        self.kinematics = KinematicsMonitor(config.noise.process_cov, config.kinematics)
         self.frames_seen = 0
 
     @abc.abstractmethod
@@ -139,14 +142,25 @@ class Tracker(abc.ABC):
     def settings(self) -> dict:
         """JSON-serialisable settings written to result.json."""
         c = self.config
+        k = c.kinematics
         return {"method": self.method, "particles": c.particles, "window": c.window, "seed": c.seed,
-                "disabled": list(c.switches.disabled()), "robust": format_robust(c.noise.robust)}
+                "disabled": list(c.switches.disabled()), "robust": format_robust(c.noise.robust),
+                "kinematics_check": {"reference_dt_s": k.reference_dt_s, "jump_quantile": k.jump_quantile,
+                                     "max_test_gap_s": k.max_test_gap_s, "max_scale": k.max_scale,
+                                     "correct_registration": k.correct_registration,
+                                     "detect_jumps": k.detect_jumps}}
 
-    def grasper_motion(self, observation: Observation) -> np.ndarray | None:
-        """``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` when both are known, else None; remembers frame k."""
-        cur = observation.cam_T_grasper
-        prev = self._prev_grasper
-        self._prev_grasper = None if cur is None else np.asarray(cur, dtype=float)
-        if cur is None or prev is None:
-            return None
-        return cur @ np.linalg.inv(prev)
+    def motion_input(self, observation: Observation) -> MotionInput:
+        """Frame k's motion input, the same decision for every method (:mod:`pinpoint_fg.kinematics_check`).
+
+        ``delta`` is ``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` when both frames have
+        kinematics and no jump was detected, else None; ``scale`` multiplies the per-frame process
+        (or random-walk) covariance by the elapsed time; ``observation`` has the estimated
+        registration offset removed from its grasper pose and is what the likelihood must use.
+        """
+        return self.kinematics.update(observation)
+
+    @staticmethod
+    def kinematics_extra(motion: MotionInput) -> dict:
+        """Result columns of the kinematics decision: ``kinematics_fault`` (0/1) and ``process_scale``."""
+        return {"kinematics_fault": float(motion.fault), "process_scale": float(motion.scale)}

@@ -8,7 +8,9 @@ incremental smoother has known marginalisation bugs). Per frame ``k`` the update
 * a :class:`factors.gtsam_factors.MotionFactor` ``Log((D x_{k-1})^-1 x_k)`` with the grasper's
   measured motion ``D`` and the process noise ``Q`` (``config.noise["motion"]``), or ``D = I``
   and the random walk :data:`pinpoint_fg.window.RANDOM_WALK_SIGMA` when the kinematics of either
-  frame are missing or the motion switch is off;
+  frame are missing, on a kinematic fault, or when the motion switch is off; either covariance is
+  multiplied by the elapsed-time ``scale`` of :meth:`pinpoint_fg.trackers.base.Tracker.motion_input`
+  (:mod:`pinpoint_fg.kinematics_check`, the decision every tracker shares);
 * the initial value ``D x_{k-1}`` (the previous estimate moved by the grasper).
 
 The first frame's initial value is the best mode of :func:`pinpoint_fg.init.seed_particles`
@@ -45,12 +47,14 @@ up to a constant); ``iterations`` are the smoother's Levenberg-Marquardt iterati
 (an indeterminate system while optimising or marginalising), the smoother is rebuilt from the
 last estimate: a Gaussian prior at the previous pose with its last marginal covariance, this
 frame's motion and measurement factors, and a weak prior on the new pose (if that raises too, a
-fresh start at the predicted pose). If ``Marginals`` raises, it is retried with weak priors
-(``prior_sigma``) on every pose of the window, and failing that the weak prior's covariance is
-reported. Both count in ``Estimate.extra["recovered"]``. When the estimate explains the frame
-implausibly badly (:func:`pinpoint_fg.trackers.base.implausible`, the criterion every tracker
-criterion) the smoother is restarted from a fresh seeding of the frame (``Estimate.reseeded``);
-the smoothed output then pauses until the new window holds ``L`` frames again. Graph keys are
+fresh start at the predicted pose, and if even that raises — a prediction far from the frame, as
+between snapshots 0.5 s apart — a fresh seeding of the frame, ``Estimate.reseeded``). If
+``Marginals`` raises, it is retried with weak priors (``prior_sigma``) on every pose of the
+window, and failing that the weak prior's covariance is reported. Both count in
+``Estimate.extra["recovered"]``. When the estimate explains the frame implausibly badly
+(:func:`pinpoint_fg.trackers.base.implausible`, the criterion every tracker shares) the smoother
+is restarted from a fresh seeding of the frame (``Estimate.reseeded``); the smoothed output then
+pauses until the new window holds ``L`` frames again. Graph keys are
 never iterated as temporary ``KeySet`` objects (GTSAM_NOTES §6).
 """
 
@@ -302,19 +306,23 @@ class MapTracker(Tracker):
         _, modes = seed_particles(lik, max(self.config.particles, InitConfig().max_modes), self.rng)
         return modes[0]
 
-    def motion(self, observation: Observation) -> tuple[np.ndarray, gtsam.noiseModel.Base]:
-        """``(D, noise)`` of the motion factor into this frame: the grasper's motion, or a random walk."""
-        delta = self.grasper_motion(observation)
+    def _motion_model(self, delta: np.ndarray | None, scale: float) -> tuple[np.ndarray, gtsam.noiseModel.Base]:
+        """``(D, noise)`` of the motion factor: the grasper's motion with ``scale * Q``, or the identity
+        with ``scale *`` the random walk (no kinematics, a kinematic fault, or the motion switch off)."""
         if delta is None or not self.config.switches.motion:
-            return np.eye(4), self._walk_noise
-        return delta, self.config.noise["motion"].gtsam_model()
+            if scale == 1.0:
+                return np.eye(4), self._walk_noise
+            return np.eye(4), gtsam.noiseModel.Diagonal.Sigmas(RANDOM_WALK_SIGMA * np.sqrt(scale))
+        if scale == 1.0:
+            return delta, self.config.noise["motion"].gtsam_model()
+        return delta, gtsam.noiseModel.Gaussian.Covariance(scale * self.config.noise.process_cov)
 
     # ------------------------------------------------------------------ step
     def step(self, observation: Observation) -> Estimate:
         """Add the frame to the smoother, optimise, report the newest pose and its marginal (module docstring)."""
         t0 = time.perf_counter()
-        lik = FrameLikelihood(observation, self._model)
-        D, motion_noise = self.motion(observation)
+        motion = self.motion_input(observation)
+        lik = FrameLikelihood(motion.observation, self._model)
         b = self._branch
         key = b.key + 1
         frame_factors = lik.gtsam_factors(key)
@@ -323,7 +331,12 @@ class MapTracker(Tracker):
         if b.smoother is None:
             result = b.restart(frame_factors, key, self._seed_pose(lik))
         else:
-            result, recovered = b.advance(frame_factors, key, D, motion_noise)
+            D, motion_noise = self._motion_model(motion.delta, motion.scale)
+            try:
+                result, recovered = b.advance(frame_factors, key, D, motion_noise)
+            except RuntimeError:  # even a restart at the prediction raised (e.g. a far snapshot): re-seed
+                result, recovered = b.restart(frame_factors, key, self._seed_pose(lik)), 1
+                reseeded = True
         est = b.estimate(key)
         if self.map.reseed and key > b.first_key and implausible(float(lik.nll(est)[0]), lik):
             result = b.restart(frame_factors, key, self._seed_pose(lik))
@@ -348,5 +361,5 @@ class MapTracker(Tracker):
             weights=None,
             smoothed=smoothed,
             reseeded=reseeded,
-            extra={"recovered": recovered, "window_error": error},
+            extra={"recovered": recovered, "window_error": error, **self.kinematics_extra(motion)},
         )

@@ -105,6 +105,7 @@ import numpy as np
 from factors.lie import local, se3_exp
 from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.init import InitConfig, seed_particles
+from pinpoint_fg.kinematics_check import MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior_modes import Mode
@@ -211,12 +212,20 @@ class MhtTracker(Tracker):
         return out
 
     # ------------------------------------------------------------------ pieces
-    def _motion(self, observation: Observation) -> tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray]:
-        delta = self.grasper_motion(observation)
-        if delta is None or not self.config.switches.motion:
-            return np.eye(4), self._walk_noise, np.diag(RANDOM_WALK_SIGMA**2)
+    def _motion(self, motion: MotionInput) -> tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray]:
+        """``(D, noise, covariance)`` of the motion factor: the grasper's motion with ``scale * Q``, or the
+        identity with ``scale *`` the random walk (the same decision as every tracker's, ``motion_input``)."""
+        scale = float(motion.scale)
+        if motion.delta is None or not self.config.switches.motion:
+            if scale == 1.0:
+                return np.eye(4), self._walk_noise, np.diag(RANDOM_WALK_SIGMA**2)
+            cov = np.diag(RANDOM_WALK_SIGMA**2) * scale
+            return np.eye(4), gtsam.noiseModel.Gaussian.Covariance(cov), cov
         noise = self.config.noise["motion"]
-        return delta, noise.gtsam_model(), noise.cov
+        if scale == 1.0:
+            return motion.delta, noise.gtsam_model(), noise.cov
+        cov = scale * noise.cov
+        return motion.delta, gtsam.noiseModel.Gaussian.Covariance(cov), cov
 
     def _evidence(self, lik: FrameLikelihood, T: np.ndarray, cov: np.ndarray, mean: np.ndarray,
                   prior_cov: np.ndarray) -> float:
@@ -382,8 +391,10 @@ class MhtTracker(Tracker):
     def step(self, observation: Observation) -> Estimate:
         """Update every branch, branch on the proposals, weigh by Laplace evidence, prune (module docstring)."""
         t0 = time.perf_counter()
+        motion = self.motion_input(observation)
+        observation = motion.observation  # the grasper pose with a detected re-registration removed
         lik = FrameLikelihood(observation, self._model)
-        D, motion_noise, Q = self._motion(observation)
+        D, motion_noise, Q = self._motion(motion)
         key = self._key + 1
         recovered, reseeded = 0, False
         if not self.branches:
@@ -453,7 +464,7 @@ class MhtTracker(Tracker):
             smoothed=smoothed,
             reseeded=reseeded,
             extra={"branches": len(branches), "best_weight": float(w[0]), "proposals": n_prop,
-                   "admitted": admitted, "recovered": recovered},
+                   "admitted": admitted, "recovered": recovered, **self.kinematics_extra(motion)},
             modes=tuple(Mode(b.smoother.newest.copy(), float(wi), b.smoother.cov.copy())
                         for b, wi in zip(branches, w, strict=True)),
         )

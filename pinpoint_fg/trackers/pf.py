@@ -5,7 +5,9 @@ A bootstrap (sequential importance resampling) filter over needle poses, ``N`` =
 * **Predict.** ``T_i <- D T_i Exp(n_i)``, ``n_i ~ N(0, diag(s^2))`` with ``s`` the random walk
   :data:`pinpoint_fg.window.RANDOM_WALK_SIGMA` (5 deg, 1 mm per frame, ``[omega; v]``) and
   ``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` the grasper's measured motion (identity when the
-  kinematics of either frame are missing or the motion switch is off).
+  kinematics of either frame are missing, on a kinematic fault, or when the motion switch is off),
+  and ``s`` widened by ``sqrt(scale)`` for the elapsed time — the decision every tracker shares
+  (:meth:`pinpoint_fg.trackers.base.Tracker.motion_input`, :mod:`pinpoint_fg.kinematics_check`).
 * **Weight.** ``log w_i += -nll_i`` with ``nll`` the frame's whitened residuals plus the cheirality
   penalty (:meth:`pinpoint_fg.likelihood.FrameLikelihood.nll`, batched), then normalised in log
   space, ``log w_i -= logsumexp(log w)``.
@@ -174,8 +176,9 @@ class ParticleFilterTracker(Tracker):
     def step(self, observation: Observation) -> Estimate:
         """Predict, weight, report, resample (module docstring)."""
         t0 = time.perf_counter()
-        lik = FrameLikelihood(observation, self._model)
-        delta = self.grasper_motion(observation)
+        motion = self.motion_input(observation)
+        lik = FrameLikelihood(motion.observation, self._model)
+        delta = motion.delta
         if not self.config.switches.motion:
             delta = None
         reseeded = False
@@ -184,7 +187,8 @@ class ParticleFilterTracker(Tracker):
             log_w = normalize_log_weights(-nll)
         else:
             assert self._log_w is not None
-            T = propagate(self._particles, delta, self.pf.random_walk_sigma, self.rng)
+            sigma = np.asarray(self.pf.random_walk_sigma) * np.sqrt(motion.scale)  # elapsed-time widening
+            T = propagate(self._particles, delta, sigma, self.rng)
             nll = batched_nll(lik, T)
             log_w = normalize_log_weights(self._log_w - nll)
             if self.pf.reseed and implausible(float(np.min(nll)), lik):
@@ -214,5 +218,6 @@ class ParticleFilterTracker(Tracker):
             log_posterior=estimate_log_w,
             weights=w,
             reseeded=reseeded,
-            extra={"ess": ess, "resampled": int(resampled), "map_nll": float(nll[map_index])},
+            extra={"ess": ess, "resampled": int(resampled), "map_nll": float(nll[map_index]),
+                   **self.kinematics_extra(motion)},
         )

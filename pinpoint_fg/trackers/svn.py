@@ -323,13 +323,13 @@ class SvnTracker(Tracker):
     def step(self, observation: Observation) -> Estimate:
         """Process one frame (see the module docstring)."""
         t0 = time.perf_counter()
-        lik = FrameLikelihood(observation, self.config.model)
-        D = self.grasper_motion(observation)
+        motion = self.motion_input(observation)
+        lik = FrameLikelihood(motion.observation, self.config.model)
         reseeded = False
         if self.window.poses is None:
             self._seed(lik)
         else:
-            self.window.push(lik, D, self.config.switches.motion)
+            self.window.push(lik, motion.delta, self.config.switches.motion, process_scale=motion.scale)
             self._jitter_copies()
         twinned = self.svn.twin_share > 0 and self._inject_twin(lik)
         first = self.frames_seen < self.svn.first_frames
@@ -365,7 +365,7 @@ class SvnTracker(Tracker):
             frame=observation.frame, t_s=observation.t_s, cam_T_needle=particles[i].copy(),
             q95_trans_m=q_t, q95_rot_rad=q_r, cov_xi=cov, iterations=iters, latency_ms=latency_ms,
             particles=particles, log_posterior=logp, smoothed=smoothed, reseeded=reseeded,
-            extra={"pruned": float(pruned), "twin_seeded": float(twinned)},
+            extra={"pruned": float(pruned), "twin_seeded": float(twinned), **self.kinematics_extra(motion)},
         )
 
 

@@ -137,6 +137,22 @@ class KeypointFactor(_UnaryPoseFactor):
         super().__init__(noise, key, 2, lambda T: res.keypoint_residual(T, K, X, z))
 
 
+def _conic_inputs(camera: object, radius_m: float, points_px: np.ndarray, bias: float
+                  ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Checked ``(K, points_px (M, 2), radius_m, bias)`` of a conic factor (ValueError on bad input)."""
+    K = _camera_K(camera)
+    pts = as_points_px("points_px", points_px)
+    if pts.shape[0] == 0:
+        raise ValueError("points_px must hold at least one backbone pixel")
+    r_m = float(radius_m)
+    if not np.isfinite(r_m) or r_m <= 0:
+        raise ValueError(f"radius_m must be a positive finite number, got {radius_m!r}")
+    b = float(bias)
+    if not np.isfinite(b):
+        raise ValueError("bias must be finite")
+    return K, pts, r_m, b
+
+
 class ConicFactor(_UnaryPoseFactor):
     """Sampson distances (M px) of M backbone pixels to the needle circle's image conic; one per frame.
 
@@ -152,16 +168,7 @@ class ConicFactor(_UnaryPoseFactor):
         noise: gtsam.noiseModel.Base,
         bias: float = 0.0,
     ) -> None:
-        K = _camera_K(camera)
-        pts = as_points_px("points_px", points_px)
-        if pts.shape[0] == 0:
-            raise ValueError("points_px must hold at least one backbone pixel")
-        r_m = float(radius_m)
-        if not np.isfinite(r_m) or r_m <= 0:
-            raise ValueError(f"radius_m must be a positive finite number, got {radius_m!r}")
-        b = float(bias)
-        if not np.isfinite(b):
-            raise ValueError("bias must be finite")
+        K, pts, r_m, b = _conic_inputs(camera, radius_m, points_px, bias)
 
         def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             r, J = res.conic_residual(T, K, r_m, pts)
@@ -216,16 +223,7 @@ def conic_pixel_factors(
     the plain Gaussian. All the factors share one cache, so a graph linearised at one pose runs
     the batched :func:`factors.residuals.conic_residual` once, not once per pixel.
     """
-    K = _camera_K(camera)
-    pts = as_points_px("points_px", points_px)
-    if pts.shape[0] == 0:
-        raise ValueError("points_px must hold at least one backbone pixel")
-    r_m = float(radius_m)
-    if not np.isfinite(r_m) or r_m <= 0:
-        raise ValueError(f"radius_m must be a positive finite number, got {radius_m!r}")
-    b = float(bias)
-    if not np.isfinite(b):
-        raise ValueError("bias must be finite")
+    K, pts, r_m, b = _conic_inputs(camera, radius_m, points_px, bias)
     _check_noise(noise, 1)
     cache = _ConicCache(K, r_m, pts, b)
     return [ConicPixelFactor(key, cache, i, noise) for i in range(pts.shape[0])]

@@ -69,6 +69,7 @@ import numpy as np
 from factors.gtsam_factors import MotionFactor, PosePriorFactor
 from pinpoint_fg.eval.metrics import weighted_quantile
 from pinpoint_fg.init import InitConfig, seed_particles
+from pinpoint_fg.kinematics_check import MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible
@@ -139,6 +140,24 @@ def gaussian_q95(cov_xi: np.ndarray, z: np.ndarray) -> tuple[float, float]:
     xi = z @ S.T
     return (float(weighted_quantile(np.linalg.norm(xi[:, 3:], axis=1), None, 0.95)),
             float(weighted_quantile(np.linalg.norm(xi[:, :3], axis=1), None, 0.95)))
+
+
+def motion_model(config: TrackerConfig, motion: MotionInput) -> tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray]:
+    """``(D, noise model, covariance)`` of the motion factor into a frame, shared by ``map`` and ``mht``.
+
+    The grasper's motion ``D`` with ``scale * Q`` (the process covariance), or the identity with
+    ``scale *`` the random walk when there is no motion input (no kinematics, a kinematic fault, the
+    motion switch off); ``scale`` is the elapsed-time factor of :class:`pinpoint_fg.kinematics_check.MotionInput`.
+    """
+    scale = float(motion.scale)
+    if motion.delta is None or not config.switches.motion:
+        cov = np.diag(RANDOM_WALK_SIGMA**2) * scale
+        return np.eye(4), gtsam.noiseModel.Diagonal.Sigmas(RANDOM_WALK_SIGMA * np.sqrt(scale)), cov
+    noise = config.noise["motion"]
+    if scale == 1.0:
+        return motion.delta, noise.gtsam_model(), noise.cov
+    cov = scale * config.noise.process_cov
+    return motion.delta, gtsam.noiseModel.Gaussian.Covariance(cov), cov
 
 
 class MapSmoother:
@@ -263,7 +282,6 @@ class MapTracker(Tracker):
         self.map = map_config
         self._model = config.model
         self._branch = MapSmoother(map_config, config.window)
-        self._walk_noise = gtsam.noiseModel.Diagonal.Sigmas(RANDOM_WALK_SIGMA)
         self._z = np.random.default_rng([config.seed, 95]).standard_normal((map_config.q95_samples, 6))
 
     @property
@@ -306,17 +324,6 @@ class MapTracker(Tracker):
         _, modes = seed_particles(lik, max(self.config.particles, InitConfig().max_modes), self.rng)
         return modes[0]
 
-    def _motion_model(self, delta: np.ndarray | None, scale: float) -> tuple[np.ndarray, gtsam.noiseModel.Base]:
-        """``(D, noise)`` of the motion factor: the grasper's motion with ``scale * Q``, or the identity
-        with ``scale *`` the random walk (no kinematics, a kinematic fault, or the motion switch off)."""
-        if delta is None or not self.config.switches.motion:
-            if scale == 1.0:
-                return np.eye(4), self._walk_noise
-            return np.eye(4), gtsam.noiseModel.Diagonal.Sigmas(RANDOM_WALK_SIGMA * np.sqrt(scale))
-        if scale == 1.0:
-            return delta, self.config.noise["motion"].gtsam_model()
-        return delta, gtsam.noiseModel.Gaussian.Covariance(scale * self.config.noise.process_cov)
-
     # ------------------------------------------------------------------ step
     def step(self, observation: Observation) -> Estimate:
         """Add the frame to the smoother, optimise, report the newest pose and its marginal (module docstring)."""
@@ -331,7 +338,7 @@ class MapTracker(Tracker):
         if b.smoother is None:
             result = b.restart(frame_factors, key, self._seed_pose(lik))
         else:
-            D, motion_noise = self._motion_model(motion.delta, motion.scale)
+            D, motion_noise, _ = motion_model(self.config, motion)
             try:
                 result, recovered = b.advance(frame_factors, key, D, motion_noise)
             except RuntimeError:  # even a restart at the prediction raised (e.g. a far snapshot): re-seed

@@ -105,7 +105,6 @@ import numpy as np
 from factors.lie import local, se3_exp
 from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.init import InitConfig, seed_particles
-from pinpoint_fg.kinematics_check import MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior_modes import Mode
@@ -119,8 +118,7 @@ from pinpoint_fg.proposals import (
     rigid_map,
 )
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible
-from pinpoint_fg.trackers.map import MapConfig, MapSmoother
-from pinpoint_fg.window import RANDOM_WALK_SIGMA
+from pinpoint_fg.trackers.map import MapConfig, MapSmoother, motion_model
 
 
 @dataclass(frozen=True)
@@ -189,7 +187,6 @@ class MhtTracker(Tracker):
             raise ValueError(f"window must be at least 1, got {config.window}")
         self.mht = mht_config
         self._model = config.model
-        self._walk_noise = gtsam.noiseModel.Diagonal.Sigmas(RANDOM_WALK_SIGMA)
         self._weak_cov = np.diag(np.square(mht_config.map.prior_sigma))
         self._z = np.random.default_rng([config.seed, 95]).standard_normal((mht_config.map.q95_samples, 6))
         self.branches: list[_Branch] = []
@@ -212,21 +209,6 @@ class MhtTracker(Tracker):
         return out
 
     # ------------------------------------------------------------------ pieces
-    def _motion(self, motion: MotionInput) -> tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray]:
-        """``(D, noise, covariance)`` of the motion factor: the grasper's motion with ``scale * Q``, or the
-        identity with ``scale *`` the random walk (the same decision as every tracker's, ``motion_input``)."""
-        scale = float(motion.scale)
-        if motion.delta is None or not self.config.switches.motion:
-            if scale == 1.0:
-                return np.eye(4), self._walk_noise, np.diag(RANDOM_WALK_SIGMA**2)
-            cov = np.diag(RANDOM_WALK_SIGMA**2) * scale
-            return np.eye(4), gtsam.noiseModel.Gaussian.Covariance(cov), cov
-        noise = self.config.noise["motion"]
-        if scale == 1.0:
-            return motion.delta, noise.gtsam_model(), noise.cov
-        cov = scale * noise.cov
-        return motion.delta, gtsam.noiseModel.Gaussian.Covariance(cov), cov
-
     def _evidence(self, lik: FrameLikelihood, T: np.ndarray, cov: np.ndarray, mean: np.ndarray,
                   prior_cov: np.ndarray) -> float:
         """Laplace log-evidence increment of a smoother's estimate ``T`` with marginal ``cov`` (module docstring)."""
@@ -394,7 +376,7 @@ class MhtTracker(Tracker):
         motion = self.motion_input(observation)
         observation = motion.observation  # the grasper pose with a detected re-registration removed
         lik = FrameLikelihood(observation, self._model)
-        D, motion_noise, Q = self._motion(motion)
+        D, motion_noise, Q = motion_model(self.config, motion)
         key = self._key + 1
         recovered, reseeded = 0, False
         if not self.branches:

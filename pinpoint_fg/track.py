@@ -10,7 +10,10 @@ part of it.
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -114,6 +117,18 @@ def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bo
     )
 
 
+def _exit_with_parent(parent_pid: int) -> None:
+    """Worker initializer: end this worker as soon as the tracking process is gone (e.g. SIGKILL), so no
+    orphan keeps running or keeps the caller's stdout/stderr pipes open."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.2)
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
 class _Verdicts:
     """Per-frame summaries off the tracking thread: a worker process turns frame k's estimate into its result
     row (:func:`to_frame_estimate`: GMM verdict, mode clustering, weak direction) while the tracker steps k+1.
@@ -131,7 +146,8 @@ class _Verdicts:
             from concurrent.futures import ProcessPoolExecutor
 
             # spawn: the worker never inherits GTSAM state or BLAS locks; it imports scikit-learn while we track
-            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                            initializer=_exit_with_parent, initargs=(os.getpid(),))
             self.pool.submit(bimodality_verdict, np.zeros((0, 4, 4)), np.eye(4), None)  # warm-up: imports
         self.pending: list = []
 

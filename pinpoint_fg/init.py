@@ -264,35 +264,3 @@ def seed_particles(
 def image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float) -> np.ndarray:
     """The needle circle's image conic at one pose, unit norm (:func:`factors.residuals.needle_image_conic`)."""
     return needle_image_conic(cam_T_needle, K, radius_m)[0]
-
-
-def twin_pose(lik: FrameLikelihood, cam_T_needle: np.ndarray, cfg: InitConfig = InitConfig(),
-              min_angle_rad: float = np.deg2rad(10.0)) -> tuple[np.ndarray, float] | None:
-    """The other circle pose with the same image ellipse as ``cam_T_needle``, fitted to this frame.
-
-    Both normal orientations and an in-plane angle grid are tried and polished on the frame's
-    likelihood; candidates that drift back within ``min_angle_rad`` of the given pose's plane are
-    discarded. Returns ``(pose (4, 4), nll)`` of the best twin, or None (edge-on / face-on views
-    have no distinct twin).
-    """
-    K, r = lik.model.camera.K, lik.model.needle.radius_m
-    T = np.asarray(cam_T_needle, dtype=float)
-    n_ref = T[:3, 2]
-    sols = circle_poses_from_conic(image_conic(T, K, r), K, r)
-    alt = [(c, n) for c, n in sols if abs(n @ n_ref) < np.cos(min_angle_rad)]
-    if not alt:
-        return None
-    c, n = alt[0]
-    steps = cfg.angle_steps
-    ang = np.linspace(0, 2 * np.pi, steps, endpoint=False)
-    Rz = np.zeros((steps, 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
-    Rz[:, 2, 2] = 1.0
-    cands = np.concatenate([homogeneous(_frame_from_normal(s * n, np.array([1.0, 0.0, 0.0])) @ Rz,
-                                   np.broadcast_to(c, (steps, 3))) for s in (1.0, -1.0)])
-    cands, nll = polish(lik, cands, cfg.polish_iters)
-    keep = np.isfinite(nll) & (np.abs(cands[:, :3, 2] @ n_ref) < np.cos(min_angle_rad))
-    if not keep.any():
-        return None
-    i = int(np.argmin(np.where(keep, nll, np.inf)))
-    return cands[i], float(nll[i])

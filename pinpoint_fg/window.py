@@ -27,8 +27,11 @@ positive definite). ``L = 1`` is the paper's filter.
 **Evidence**: marginalisation also leaves a constant per hypothesis — the cost of the history it
 removed, at its optimum. Discarding it (as a prior factor does) would make every hypothesis look
 equally supported by the past; it is kept in :attr:`Window.evidence` with a forgetting factor
-``gamma`` per frame (``evidence <- gamma * evidence + c``), so hypotheses are compared on their
-recent history (about ``1 / (1 - gamma)`` frames) rather than on the current frame alone.
+``gamma`` per frame (``evidence <- gamma * evidence + c``; ``gamma = 1``: none), so hypotheses are
+compared on their history rather than on the current frame alone. ``c`` is the negative log of
+the Laplace integral over the removed pose: the Gauss-Newton optimum's cost plus
+``1/2 log det A`` (``A`` the removed pose's conditional information; the common ``3 log 2 pi``
+left out), so with ``gamma = 1`` the evidence is the hypothesis's marginal likelihood of its past.
 """
 
 from __future__ import annotations
@@ -342,6 +345,9 @@ class Window:
         # constant left by the elimination: value at the optimum of the removed pose and of the new prior
         c = v0 + 0.5 * np.sum(e * e, axis=1) - 0.5 * np.sum(gA * np.einsum("nij,nj->ni", Ainv, gA), axis=1)
         c = c - 0.5 * np.sum(gn * -d_star, axis=1)
+        # Laplace: integrating the removed pose out multiplies by det(A)^-1/2 (A its conditional information), so
+        # the cost gains 1/2 log det A: the evidence is then each hypothesis's marginal likelihood, not its best path
+        c = c + 0.5 * np.linalg.slogdet(A)[1]
         self.evidence = self.forgetting * self.evidence + c
         self.prior_mean = self.poses[1] @ se3_exp(d_star)
         self.prior_W = sqrt_information(Hn)
@@ -391,6 +397,19 @@ class Window:
             a.flags.writeable = False
             merged.append(a)
         self._prior_memo = (self._prior_key(self.poses[0]), tuple(merged))
+
+    def overwrite(self, index: np.ndarray | list[int], source: Window, source_index: np.ndarray | list[int]) -> None:
+        """Hypotheses ``index`` become copies of ``source``'s hypotheses ``source_index``: poses, prior, evidence.
+
+        ``source`` shares this window's frames (this window, or a :meth:`subset` of it).
+        """
+        assert self.poses is not None and source.poses is not None and self.evidence is not None
+        index, source_index = np.asarray(index), np.asarray(source_index)
+        self.poses[:, index] = source.poses[:, source_index]
+        self.prior_mean[index] = source.prior_mean[source_index]
+        self.prior_W[index] = source.prior_W[source_index]
+        self.evidence[index] = source.evidence[source_index]
+        self._prior_memo = None
 
     def resample(self, index: np.ndarray) -> None:
         """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF)."""

@@ -186,24 +186,3 @@ def test_window_smoothing_reports_lagged_estimate() -> None:
     assert ests[0].smoothed is None and ests[1].smoothed is None
     assert [e.smoothed[0] for e in ests[2:]] == [0, 1, 2]
     assert all(np.linalg.norm(e.smoothed[2][:3, 3] - T[:3, 3]) < 2e-3 for e in ests[2:])
-
-
-def test_twin_pose_is_the_other_circle_and_twin_seeding_populates_it() -> None:
-    from pinpoint_fg.init import twin_pose
-    from pinpoint_fg.trackers.svn import SvnSettings
-
-    T, alt_normal, arc = _ambiguous_scene()
-    obs = Observation(0, 0.0, backbone_px=arc, cam_T_grasper=_grasper(T))
-    sw = Switches(grasp_perpendicular=False, tip=False, tail=False)
-    cfg = TrackerConfig(CAM, NEEDLE, NoiseConfig(), sw, particles=30)
-    lik = FrameLikelihood(obs, cfg.model)
-    twin, nll = twin_pose(lik, T)
-    assert abs(twin[:3, 2] @ alt_normal) > np.cos(np.deg2rad(5))
-    assert nll < lik.nll(T[None])[0] + 3.0  # genuinely ambiguous
-    # a tracker whose particles all sit in the true mode finds the twin on the next frame
-    tr = SvnTracker(cfg, SvnSettings(twin_share=0.3))
-    tr.step(obs)
-    tr.window.poses[-1] = T @ se3_exp(np.random.default_rng(0).normal(size=(30, 6)) * 1e-3)
-    est = tr.step(Observation(1, 1 / 30, backbone_px=arc, cam_T_grasper=_grasper(T)))
-    assert est.extra["twin_seeded"] == 1.0
-    assert _mode_shares(est.particles, T, alt_normal)[1] >= 0.2

@@ -24,26 +24,29 @@ Per frame (DESIGN.md §Inference):
 4. **Early stop** — when the 95th percentile of step sizes is below 0.1 mm and 0.5 deg two
    iterations in a row (paper §V-B without its flat-log-posterior test, which measured nothing
    useful here: ``SvnSettings.stop_logp``).
-5. **Twin** — the circle ambiguity can *emerge* while tracking (the needle turns through an
-   edge-on view) far from every hypothesis, and transport cannot jump there. On frames with a
-   backbone, the MAP pose's closed-form twin (:func:`pinpoint_fg.init.twin_pose`: the other
-   circle with the same image ellipse, fitted to the frame) is computed; if it explains the
-   frame within ``twin_nll`` nats of the MAP and no hypothesis lies within 15 deg of its plane,
-   it replaces the ``twin_share`` worst hypotheses (off by default: ``SvnSettings.twin_share``;
-   their windows move rigidly with it: the MAP's
-   history, prior and evidence, carried over by ``twin @ map^-1``). Pruning removes it again
-   when the evidence turns against it.
-6. **Prune** — Stein transport cannot move particles between separated modes, so a mode the
-   evidence has ruled out would otherwise linger. Each hypothesis carries the evidence its
-   window marginalised (:attr:`pinpoint_fg.window.Window.evidence`, no forgetting: ``SvnSettings.forgetting``);
-   after transport, hypotheses whose *mode* is ruled out are replaced by copies of surviving
-   ones (jittered at the next frame's prediction so the transport spreads them again). Modes,
-   not particles, are compared: each particle's cost is replaced by the Gauss-Newton
-   prediction of its local optimum, ``c_i - 1/2 g_i^T H_i^-1 g_i`` (plus its evidence), which is
-   the same for every particle of one mode however far repulsion has spread them; a particle
-   is pruned when that exceeds the best by ``prune_nll`` (relative density e^-30). Genuinely
-   ambiguous modes (a few nats apart) are untouched.
-7. **Report** — MAP particle (lowest total cost: evidence + window), first polished to
+5. **Modes** (:mod:`pinpoint_fg.trackers.svn_modes`, before the transport) — Stein transport
+   cannot move particles between basins, and an ambiguity can *emerge* while tracking (the
+   needle turns through an edge-on view) far from every hypothesis. The hypotheses are grouped
+   into modes by their Gauss-Newton-predicted peaks, each scored by its Laplace evidence (the
+   accumulated marginal likelihood of its window, ``-1/2 log det`` of the information included).
+   On frames with a backbone, each of the ``K`` best modes proposes its closed-form twin and
+   arc flips, and the frame's own ellipse proposes both circles (re-detection from the frame
+   alone, every frame); a proposal keeps its parent's window prior (a mode switch pays the
+   motion model's price), is polished on its window and admitted when its evidence is within
+   ``admit_nats`` of the best mode's. Every admitted mode holds at least a floor of
+   hypotheses (copies of its window); then the transport proceeds as above.
+6. **Prune** — a mode the evidence has ruled out would otherwise linger. After transport,
+   hypotheses whose basin's log-evidence is more than ``prune_nll`` below the best (relative
+   mass e^-30) are replaced by copies of surviving ones (jittered at the next frame's
+   prediction so the transport spreads them again). Basins, not particles, are compared: every
+   particle of one mode predicts the same peak, however far repulsion has spread them, so
+   genuinely ambiguous modes (a few nats apart) are untouched. The evidence is never forgotten
+   (``SvnSettings.forgetting``).
+7. **Report** — the modes (``Estimate.modes``, at most ``K``): each mode's weight is
+   ``softmax`` of the modes' log-evidence (particle counts are not weights: transport cannot
+   move mass between basins), its peak its best hypothesis (the MAP mode's polished), its
+   covariance its members' tangent covariance (or the inverse information when it has fewer
+   than 7 members). The MAP is the best hypothesis of the heaviest mode, first polished to
    convergence by damped Gauss-Newton on its own window (a one-hypothesis
    :meth:`~pinpoint_fg.window.Window.subset`; steps accepted only when its cost drops; at most
    ``map_polish_iters``): repulsion keeps every particle, the best included, off its mode's peak
@@ -58,16 +61,19 @@ SVGD (ablation baseline) is the same loop with ``H = I``, ``S = I`` and a fixed 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from factors.lie import local, se3_exp, se3_right_jacobian
-from pinpoint_fg.init import InitConfig, seed_particles, twin_pose
+from pinpoint_fg.eval.metrics import tangent_spread
+from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
+from pinpoint_fg.posterior_modes import Mode
 from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible, summarize
+from pinpoint_fg.trackers.svn_modes import SCALE, Basins, ModeSettings, allot, basins, propose, settle
 from pinpoint_fg.window import Window
 
 #: Weak prior on the very first pose of each hypothesis: [omega x3 (rad), v x3 (m)].
@@ -111,7 +117,7 @@ class SvnSettings:
     collapse_nll: float = 10.0
     """Safeguard: largest accepted rise of a particle's negative log-posterior per step."""
     prune_nll: float = 30.0
-    """Hypotheses whose mode value exceeds the best by more than this are replaced (inf disables pruning)."""
+    """Hypotheses whose basin's log-evidence is this far below the best are replaced (inf disables pruning)."""
     forgetting: float = 1.0
     """Per-frame forgetting factor of each hypothesis's accumulated evidence (1 = none: the evidence is the
     hypothesis's whole marginal likelihood). Measured against 0.9 (the earlier default) on the nine benchmark
@@ -119,17 +125,6 @@ class SvnSettings:
     a particle within 2 mm / 10 deg of the truth): equal on seven, better on
     snapshots (96.7 % vs 94.0 %) and symmetric (16 % vs 0 %); MAP rotation error better on calibration
     (3.8 vs 4.8 deg), snapshots (8.3 vs 11.4) and symmetric (31 vs 77), worse on kinfault (6.0 vs 5.5)."""
-    twin_nll: float = 10.0
-    """Seed the MAP's closed-form twin when it explains the frame within this many nats (inf: always)."""
-    twin_share: float = 0.0
-    """Share of the hypotheses (the worst ones) moved to a newly found twin; 0 (default) disables.
-    Off by default: on the simulated rotation runs (300 frames) it raised the bimodal rate on
-    ambiguous frames from 4 % to 35 % but also flagged 30 % of clear frames and moved the MAP to
-    the twin (mean rotation error 15 -> 64 deg), because there the twin explains the frames better
-    under the model (the external force breaks perpendicularity)."""
-    twin_handicap: float = 10.0
-    """Evidence (nats) a new twin starts behind the MAP: it shares the image history but not the
-    kinematic one, so it must out-explain the MAP over several frames before it becomes the MAP."""
     map_polish_iters: int = 20
     """At most this many damped Gauss-Newton steps polish the MAP particle after transport (0 disables);
     it stops earlier at convergence (``polish_decrement``)."""
@@ -138,6 +133,10 @@ class SvnSettings:
     this many nats: the pose is then within ~0.05 posterior standard deviations of the peak."""
     jitter_sigma: tuple[float, ...] = (np.deg2rad(1.0),) * 3 + (0.2e-3,) * 3
     """Spread of the copies that replace pruned hypotheses, [omega x3 (rad), v x3 (m)]."""
+    map_by_evidence: bool = True
+    """The MAP is the best hypothesis of the mode with the highest Laplace evidence (False: the lowest cost)."""
+    modes: ModeSettings = field(default_factory=ModeSettings)
+    """Mode proposals, Laplace admission and the per-mode floor of hypotheses (:mod:`.svn_modes`)."""
 
 
 class SvnTracker(Tracker):
@@ -175,7 +174,7 @@ class SvnTracker(Tracker):
     def settings(self) -> dict:
         """Settings for result.json."""
         out = super().settings()
-        out.update({k: (float(v) if isinstance(v, float) else v) for k, v in self.svn.__dict__.items()})
+        out.update({k: (float(v) if isinstance(v, float) else v) for k, v in asdict(self.svn).items()})
         return out
 
     def _seed(self, lik: FrameLikelihood) -> None:
@@ -230,92 +229,54 @@ class SvnTracker(Tracker):
         lin = self.window.linearize()
         self._lin = lin
         final = lin.value + self.window.evidence
-        # GN-predicted optimum of each particle's local mode (for pruning): c - 1/2 g^T H^-1 g
-        S = self._S
-        _, Hinv = floor_hessians(lin.hess * np.outer(S, S), eps=1e-6)
-        gw = lin.grad * S
-        drop = 0.5 * np.einsum("ni,nij,nj->n", gw, Hinv, gw)
-        self._mode_value = final - np.clip(drop, 0.0, np.maximum(lin.value, 0.0))
         return iterations, final
 
-    def _polish_map(self, total: np.ndarray) -> np.ndarray:
-        """Move the best particle to its mode's peak (damped GN on its own window); returns updated costs.
+    def _prune(self, log_evidence: np.ndarray, total: np.ndarray) -> np.ndarray:
+        """Replace hypotheses whose basin's ``log_evidence (N,)`` is ruled out with copies of survivors (+inf: keep).
 
-        Levenberg-Marquardt on a one-hypothesis :meth:`Window.subset`, starting from the
-        transport's final linearisation (no re-evaluation); each trial evaluation is memoised and
-        becomes the next linearisation, so an accepted step costs one particle's evaluation.
-        Runs to convergence — the Gauss-Newton decrement ``1/2 g^T H^-1 g`` below
-        ``polish_decrement`` nats — or ``map_polish_iters`` steps.
+        Returns the index (N,) each hypothesis now copies (identity where alive); ``total`` follows.
         """
-        i = int(np.argmin(total))
-        sub = self.window.subset([i])
-        lin = self._lin.subset([i]) if self._lin is not None else sub.linearize()
-        value = float(lin.value[0])
-        lam = 1e-3
-        moved = False
-        for _ in range(self.svn.map_polish_iters):
-            H, g = lin.hess[0], lin.grad[0]
-            _, Hinv = floor_hessians(H[None], eps=1e-9)
-            if 0.5 * float(g @ Hinv[0] @ g) < self.svn.polish_decrement:
-                break
-            A = H + lam * np.diag(np.maximum(np.diag(H), 1e-12))
-            step = -np.linalg.solve(A, g)[None]
-            new = float(sub.newest_value(sub.newest @ se3_exp(step), lin)[0])
-            if np.isfinite(new) and new < value:
-                sub.move_newest(step, lin)
-                lin = sub.linearize()
-                value, moved = new, True
-                lam *= 0.3
-            else:
-                lam *= 10.0
-        if moved:
-            self.window.adopt(sub, [i])
-            total[i] = value + self.window.evidence[i]
-        return total
-
-    def _inject_twin(self, lik: FrameLikelihood) -> bool:
-        """Seed the MAP pose's closed-form twin when it is plausible and unpopulated (module docstring, step 5)."""
-        n_move = int(round(self.svn.twin_share * self.config.particles))
-        if n_move < 1 or "conic" not in lik.term_names or self.window.poses is None:
-            return False
-        lin = self.window.linearize()
-        total = lin.value + self.window.evidence
-        i = int(np.argmin(total))
-        T_map = self.window.newest[i]
-        twin = twin_pose(lik, T_map, self.init)
-        if twin is None:
-            return False
-        T_twin, nll_twin = twin
-        if nll_twin > float(lik.nll(T_map[None])[0]) + self.svn.twin_nll:
-            return False
-        normals = self.window.newest[:, :3, 2]
-        if np.any(np.abs(normals @ T_twin[:3, 2]) > np.cos(np.deg2rad(15.0))):
-            return False  # already populated
-        worst = np.argsort(total)[::-1][:n_move]
-        M = T_twin @ np.linalg.inv(T_map)  # camera-frame rigid move carrying the MAP's history
-        w = self.window
-        w.poses[:, worst] = M @ w.poses[:, i][:, None]
-        w.prior_mean[worst] = M @ w.prior_mean[i]
-        w.prior_W[worst] = w.prior_W[i]
-        w.evidence[worst] = w.evidence[i] + self.svn.twin_handicap
-        jitter = self.rng.normal(size=(n_move, 6)) * np.asarray(self.svn.jitter_sigma)
-        jitter[0] = 0.0
-        w.poses[-1, worst] = w.poses[-1, worst] @ se3_exp(jitter)
-        return True
-
-    def _prune(self, total: np.ndarray) -> int:
-        """Replace hypotheses ruled out by the evidence (``total`` cost (N,)) with copies of survivors."""
-        dead = ~np.isfinite(total) | (total > np.nanmin(total) + self.svn.prune_nll)
+        best = np.max(log_evidence[np.isfinite(log_evidence)], initial=-np.inf)
+        dead = np.isnan(log_evidence) | (log_evidence == -np.inf) | (log_evidence < best - self.svn.prune_nll)
+        if dead.all():
+            return np.arange(log_evidence.shape[0])
         n_dead = int(dead.sum())
         self._pending_jitter = dead
+        index = np.arange(log_evidence.shape[0])
         if n_dead == 0:
-            return 0
-        alive = np.flatnonzero(~dead)
-        index = np.arange(total.shape[0])
-        index[dead] = self.rng.choice(alive, size=n_dead)
+            return index
+        index[dead] = self.rng.choice(np.flatnonzero(~dead), size=n_dead)
         self.window.resample(index)
         total[dead] = total[index[dead]]
-        return n_dead
+        return index
+
+    def _modes(self, found: Basins, index: np.ndarray, i_map: int) -> tuple[Mode, ...]:
+        """The reported modes (module docstring, step 7): evidence weights, best K, dominant first."""
+        labels = found.labels[index]
+        P = self.window.newest
+        weights = found.weights
+        out = []
+        for m in np.argsort(-weights, kind="stable")[: self.svn.modes.max_modes]:
+            members = labels == m
+            if not members.any():
+                continue
+            peak = P[i_map] if m == labels[i_map] else found.peaks[found.reps[m]]
+            if members.sum() >= 7:
+                cov = tangent_spread(peak, P[members]).cov_xi
+            else:
+                H = self._lin.hess[found.reps[m]] if self._lin is not None else np.eye(6)
+                cov = floor_hessians((H * np.outer(SCALE, SCALE))[None], eps=1e-6)[1][0] * np.outer(SCALE, SCALE)
+            out.append(Mode(cam_T_needle=peak.copy(), weight=float(weights[m]), cov_xi=0.5 * (cov + cov.T)))
+        total = sum(m.weight for m in out)
+        return tuple(Mode(m.cam_T_needle, m.weight / total, m.cov_xi) for m in out)
+
+    def _propose(self, lik: FrameLikelihood) -> tuple[int, int]:
+        """Mode proposals, admission and allotment before the transport (module docstring, step 5)."""
+        lin = self.window.linearize()
+        found = basins(self.window.newest, lin, self.window.evidence, self.svn.modes)
+        admitted = propose(self.window, lin, found, lik, self.svn.modes)
+        moved = allot(self.window, found, admitted, self.svn.modes, self.rng, np.asarray(self.svn.jitter_sigma))
+        return admitted.screened, moved
 
     def _jitter_copies(self) -> None:
         """Spread last frame's copies (:meth:`_prune`) so the transport can separate them."""
@@ -330,13 +291,13 @@ class SvnTracker(Tracker):
         t0 = time.perf_counter()
         motion = self.motion_input(observation)
         lik = FrameLikelihood(motion.observation, self.config.model)
-        reseeded = False
+        reseeded, proposed, moved = False, 0, 0
         if self.window.poses is None:
             self._seed(lik)
         else:
             self.window.push(lik, motion.delta, self.config.switches.motion, process_scale=motion.scale)
             self._jitter_copies()
-        twinned = self.svn.twin_share > 0 and self._inject_twin(lik)
+            proposed, moved = self._propose(lik)
         first = self.frames_seen < self.svn.first_frames
         iters, value = self._transport(self.svn.iters_first if first else self.svn.iters_later)
         # the frame's terms at the current poses: memoised by the transport's last evaluation
@@ -353,15 +314,25 @@ class SvnTracker(Tracker):
                 self.window.poses, self.window.prior_mean, self.window.prior_W, self.window.evidence = kept
                 self.window.frames, self.window.deltas, self.window.delta_W = kept_frames
                 self._lin = None  # the transport's last linearisation belongs to the discarded seeding
-        if self.svn.map_polish_iters > 0:
-            value = self._polish_map(value)
-        pruned = self._prune(self._mode_value.copy())
+        if self._lin is None:
+            self._lin = self.window.linearize()
+        found = basins(self.window.newest, self._lin, self.window.evidence, self.svn.modes)
+        if self.svn.map_polish_iters > 0:  # every compared mode's best hypothesis moved to its peak
+            found, polished, lin_r = settle(self.window, self._lin, found, self.svn.map_polish_iters,
+                                            self.svn.polish_decrement, 2 * self.svn.modes.max_modes)
+            value[polished] = lin_r.value + self.window.evidence[polished]
+        if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
+            i = int(found.reps[int(np.argmax(found.mode_log_evidence))])
+        else:
+            i = int(np.argmin(value))
+        index = self._prune(np.where(found.converged, found.log_evidence, np.inf), value)
+        modes = self._modes(found, index, i)
         latency_ms = 1e3 * (time.perf_counter() - t0)
         self.frames_seen += 1
         self._times.append((observation.frame, observation.t_s))
         particles = self.window.newest.copy()
         logp = -value
-        i, q_t, q_r, cov = summarize(particles, logp)
+        i, q_t, q_r, cov = summarize(particles, logp, map_index=i)
         smoothed = None
         if self.config.window > 1 and self.window.size == self.config.window:
             f, t = self._times[-self.config.window]
@@ -370,7 +341,9 @@ class SvnTracker(Tracker):
             frame=observation.frame, t_s=observation.t_s, cam_T_needle=particles[i].copy(),
             q95_trans_m=q_t, q95_rot_rad=q_r, cov_xi=cov, iterations=iters, latency_ms=latency_ms,
             particles=particles, log_posterior=logp, smoothed=smoothed, reseeded=reseeded,
-            extra={"pruned": float(pruned), "twin_seeded": float(twinned), **self.kinematics_extra(motion)},
+            modes=modes,
+            extra={"pruned": float(np.sum(index != np.arange(index.shape[0]))), "proposals": float(proposed),
+                   "allotted": float(moved), **self.kinematics_extra(motion)},
         )
 
 

@@ -1,0 +1,347 @@
+"""SVN's modes: which hypotheses share a basin, each basin's Laplace evidence, new modes from proposals (issue 9).
+
+Stein transport moves particles *within* a basin of the posterior, never between basins, so
+:class:`~pinpoint_fg.trackers.svn.SvnTracker` keeps its modes' books explicitly, with these
+pure functions of the windows (:mod:`pinpoint_fg.window`).
+
+**Basins** (:func:`basins`). Each hypothesis's window linearisation (value ``c``, gradient
+``g``, information ``H`` of the newest pose, older poses eliminated; right chart) predicts the
+peak of its basin by one Gauss-Newton step, ``P_i = T_i Exp(d_i)``, ``d_i = -H_i^-1 g_i`` (in
+the kernel's scaled units ``S`` = 5 deg, 1 mm, eigenvalues floored at ``1e-6`` of the largest;
+the step clipped to ``max_step`` scaled units), and the cost there,
+``m_i = e_i + c_i - 1/2 g_i^T H_i^-1 g_i`` (the quadratic model's drop along the clipped step,
+at most ``c_i``; ``e_i`` the accumulated evidence :attr:`pinpoint_fg.window.Window.evidence`).
+A hypothesis whose step was clipped is not yet near its peak: its evidence is a guess, and it
+is never pruned on it (:attr:`Basins.converged`). Repulsion spreads one mode's
+particles by about the kernel scale, but they all predict the same peak; hypotheses whose
+predicted peaks lie within ``separation`` scaled units (2: 10 deg or 2 mm, the evaluation's
+truth-kept tolerance) of a better one's are one mode (greedy, best first).
+
+**Laplace evidence** of a hypothesis's basin (:func:`pinpoint_fg.proposals.laplace_log_evidence`
+applied to the window):
+
+    log Z_i = -m_i - 1/2 log det H_i - 1/2 sum_j log det H_jj    (+ constants common to all)
+
+``H_jj`` are the older poses' conditional informations of the elimination sweep (``L > 1``);
+the evidence ``e_i`` holds ``+1/2 log det`` of every pose marginalised so far (window.py), so
+``log Z`` is the hypothesis's whole marginal likelihood, frame by frame under Laplace
+approximations. Measurement and motion normalisers and the whitening units are the same for
+every hypothesis and left out. A mode's evidence is its best member's; mode weights are
+``softmax(log Z)`` over modes.
+
+**Proposals** (:func:`propose`). Only on frames with a backbone (>= 5 px) and the conic term:
+every proposal keeps the projected ellipse, which is what makes it an ambiguity; without a
+backbone a flipped arc is simply a worse fit. For the ``max_modes`` best modes,
+:func:`pinpoint_fg.proposals.mode_proposals` gives the twin circle (from the mode's own
+ellipse), the three arc flips, and — for the best mode only, since it is the same for all —
+both circles of the frame's fitted ellipse with their flips (re-detection from the frame alone,
+every frame). A candidate is its parent's window with the newest pose replaced: older poses,
+window prior and evidence stay the parent's, so switching mode pays the motion model's price
+for the jump (a proposal does not inherit the parent's history for free; no handicap is
+needed). Candidates whose Gauss-Newton-predicted cost ``m`` exceeds the best mode's by more
+than ``screen_nats`` are dropped after one batched linearisation (under the per-frame process
+noise a 180 deg flip costs thousands of nats, so on clear frames nothing is polished); the rest
+(at most ``max_candidates``, the most promising first) are polished by Levenberg-Marquardt on
+their windows (:func:`polish`), deduplicated against
+every mode and each other, and **admitted** when their ``log Z`` is within ``admit_nats`` of the
+best mode's and among the ``max_modes`` best.
+
+**Allotment** (:func:`allot`). Every admitted mode — new, or existing and within
+``admit_nats`` of the best — holds at least ``floor`` hypotheses: copies of its window (the
+first exact, the others jittered at the newest pose, so the transport spreads them) replace the
+worst hypotheses of modes outside the ``max_modes`` best, then of the most populous mode (which
+keeps at least ``floor``). Particle counts are not mode weights (transport cannot move mass
+between basins); the weights are the evidence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from factors.lie import local, se3_exp
+from pinpoint_fg.likelihood import FrameLikelihood
+from pinpoint_fg.proposals import mode_proposals
+from pinpoint_fg.stein import floor_hessians
+from pinpoint_fg.window import Linearization, Window
+
+#: Kernel scale S of the scaled tangent units: [omega x3 (rad), v x3 (m)] (svn.py's default).
+SCALE = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
+
+
+@dataclass(frozen=True)
+class ModeSettings:
+    """How SVN finds, admits and populates modes (module docstring)."""
+
+    proposals: bool = True
+    """Propose twins, flips and the frame's circles every backbone frame (False: only transport and pruning)."""
+    max_modes: int = 4
+    """K: at most this many modes are populated and reported."""
+    admit_nats: float = 10.0
+    """A proposal (or an existing mode) is admitted when its log-evidence is within this of the best (1 : e^10)."""
+    screen_nats: float = 30.0
+    """Candidates whose predicted cost exceeds the best mode's by more than this are not polished."""
+    floor: int = 4
+    """Each admitted mode holds at least this many hypotheses (capped at N / max_modes)."""
+    separation: float = 2.0
+    """Predicted peaks closer than this (scaled units: 10 deg, 2 mm) are one mode."""
+    max_step: float = 4.0
+    """The Gauss-Newton prediction of a basin's peak moves at most this far (scaled units)."""
+    polish_iters: int = 8
+    """Levenberg-Marquardt steps that polish each proposal on its window."""
+    max_candidates: int = 6
+    """At most this many screened proposals (the lowest predicted cost first) are polished per frame."""
+
+
+@dataclass(frozen=True)
+class Basins:
+    """The modes of a set of hypotheses (module docstring), for one linearisation."""
+
+    log_evidence: np.ndarray
+    """(N,) Laplace log-evidence of each hypothesis's basin (up to a common constant)."""
+    peaks: np.ndarray
+    """(N, 4, 4) each hypothesis's predicted basin peak."""
+    labels: np.ndarray
+    """(N,) mode index of each hypothesis (modes ordered by evidence, best first)."""
+    reps: np.ndarray
+    """(M,) the best hypothesis of each mode."""
+    converged: np.ndarray
+    """(N,) the predicted peak is within ``max_step`` (else its evidence is a guess: never pruned on it)."""
+
+    @property
+    def mode_log_evidence(self) -> np.ndarray:
+        """(M,) each mode's log-evidence (its best member's)."""
+        return self.log_evidence[self.reps]
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(M,) normalised mode weights ``softmax(log Z)``."""
+        z = self.mode_log_evidence
+        w = np.exp(z - np.max(z)) if np.isfinite(np.max(z)) else np.ones_like(z)
+        return w / w.sum()
+
+    def counts(self) -> np.ndarray:
+        """(M,) hypotheses per mode."""
+        return np.bincount(self.labels, minlength=self.reps.shape[0])
+
+
+def scaled_distance(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """``|Log(T_a^-1 T_b) / S|``: distance in scaled units, broadcast over leading axes."""
+    A, B = np.broadcast_arrays(np.asarray(T_a, dtype=float), np.asarray(T_b, dtype=float))
+    return np.linalg.norm(local(A.reshape(-1, 4, 4), B.reshape(-1, 4, 4)) / SCALE, axis=1).reshape(A.shape[:-2])
+
+
+def laplace_terms(lin: Linearization, evidence: np.ndarray, max_step: float = 4.0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predicted peak step ``d (N, 6)``, peak cost ``m (N,)`` and log-evidence ``log Z (N,)`` (module docstring)."""
+    S = SCALE
+    H_fl, Hinv = floor_hessians(lin.hess * np.outer(S, S), eps=1e-6)
+    gw = lin.grad * S
+    step_w = -np.einsum("nij,nj->ni", Hinv, gw)
+    norm = np.linalg.norm(step_w, axis=1)
+    step_w = step_w * np.minimum(1.0, max_step / np.maximum(norm, 1e-300))[:, None]
+    # the quadratic model's decrease along the (clipped) step: exact GN prediction when not clipped
+    drop = -np.einsum("ni,ni->n", gw, step_w) - 0.5 * np.einsum("ni,nij,nj->n", step_w, H_fl, step_w)
+    drop = np.clip(drop, 0.0, np.maximum(lin.value, 0.0))
+    m = evidence + lin.value - drop
+    logdet = np.linalg.slogdet(H_fl)[1]
+    for cond_inv in lin.cond_inv:  # -1/2 log det H_jj = +1/2 log det H_jj^-1
+        logdet = logdet - np.linalg.slogdet(cond_inv)[1]
+    log_z = -m - 0.5 * logdet
+    return step_w * S, m, np.where(np.isfinite(log_z), log_z, -np.inf)
+
+
+def basins(newest: np.ndarray, lin: Linearization, evidence: np.ndarray, settings: ModeSettings = ModeSettings()
+           ) -> Basins:
+    """Group hypotheses ``newest (N, 4, 4)`` into modes by their predicted peaks (module docstring)."""
+    step, _, log_z = laplace_terms(lin, evidence, settings.max_step)
+    converged = np.linalg.norm(step / SCALE, axis=1) < settings.max_step
+    P = newest @ se3_exp(step)
+    N = P.shape[0]
+    order = np.lexsort((np.arange(N), -np.nan_to_num(log_z, neginf=-1e300)))
+    labels = np.full(N, -1)
+    reps: list[int] = []
+    for i in order:
+        if labels[i] >= 0:
+            continue
+        free = np.flatnonzero(labels < 0)
+        close = free[scaled_distance(P[i], P[free]) < settings.separation]
+        labels[close] = len(reps)
+        labels[i] = len(reps)
+        reps.append(int(i))
+    return Basins(log_z, P, labels, np.asarray(reps, dtype=int), converged)
+
+
+def polish(sub: Window, lin: Linearization, iters: int, decrement: float = 1e-3) -> Linearization:
+    """Levenberg-Marquardt on every hypothesis of ``sub`` (each on its own window, batched); returns the final model.
+
+    A step ``-(H + lambda diag H)^-1 g`` of the newest pose (older poses follow by back-substitution)
+    is kept only where the window's cost drops; ``lambda`` shrinks by 0.3 on success and grows by 10
+    otherwise. Stops when every hypothesis's Gauss-Newton decrement ``1/2 g^T H^-1 g`` is below
+    ``decrement`` nats, or after ``iters`` steps.
+    """
+    N = sub.newest.shape[0]
+    lam = np.full(N, 1e-3)
+    for _ in range(iters):
+        _, Hinv = floor_hessians(lin.hess, eps=1e-9)
+        active = 0.5 * np.einsum("ni,nij,nj->n", lin.grad, Hinv, lin.grad) >= decrement
+        if not active.any():
+            break
+        diag = np.maximum(np.einsum("nii->ni", lin.hess), 1e-12)
+        A = lin.hess + lam[:, None, None] * (diag[:, :, None] * np.eye(6))
+        step = -np.linalg.solve(A, lin.grad[..., None])[..., 0]
+        step = np.where(active[:, None] & np.isfinite(step), step, 0.0)
+        trial = sub.newest_value(sub.newest @ se3_exp(step), lin)
+        better = active & np.isfinite(trial) & (trial < lin.value)
+        if better.any():
+            sub.move_newest(np.where(better[:, None], step, 0.0), lin)
+            lin = sub.linearize()
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+    return lin
+
+
+def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrement: float = 1e-3,
+           max_modes: int = 8) -> tuple[Basins, np.ndarray, Linearization]:
+    """Polish the best hypothesis of each of the ``max_modes`` best modes on its window and re-score the modes.
+
+    A mode's evidence from the Gauss-Newton prediction is only as good as its best particle's
+    convergence (the transport stops on step size with the whole cloud in view; after a large
+    motion a mode's particles may still be metres of cost from its peak): comparing a polished
+    mode with an unpolished one favours the polished. So every compared mode's best hypothesis
+    is moved to its peak (:func:`polish`, batched; written back to the window) and every member
+    of a mode carries its mode's polished log-evidence (modes beyond ``max_modes`` keep their
+    prediction). Returns the re-scored basins, the polished hypotheses' indices and their final model.
+    """
+    z = found.mode_log_evidence
+    chosen = np.argsort(-np.nan_to_num(z, neginf=-1e300), kind="stable")[:max_modes]
+    reps = found.reps[chosen]
+    sub = window.subset(reps)
+    lin_r = polish(sub, lin.subset(reps), iters, decrement)
+    _, _, z_r = laplace_terms(lin_r, sub.evidence)
+    window.adopt(sub, reps)
+    mode_z = z.copy()
+    mode_z[chosen] = z_r
+    peaks = found.peaks.copy()
+    peaks[reps] = sub.newest
+    converged = found.converged[found.reps].copy()
+    converged[chosen] = True
+    return Basins(mode_z[found.labels], peaks, found.labels, found.reps, converged[found.labels]), reps, lin_r
+
+
+@dataclass(frozen=True)
+class Admitted:
+    """Proposals admitted as new modes: their polished windows and log-evidence."""
+
+    windows: Window | None
+    """The polished candidate windows (one hypothesis each), or None."""
+    log_evidence: np.ndarray
+    """(A,) their log-evidence."""
+    screened: int
+    """How many proposals were generated this frame."""
+    basins: Basins | None = None
+    """The modes as re-scored for the admission (:func:`settle`), when they were."""
+
+
+def propose(window: Window, lin: Linearization, found: Basins, lik: FrameLikelihood,
+            settings: ModeSettings = ModeSettings()) -> Admitted:
+    """Proposals of the best modes, screened, polished, deduplicated and admitted (module docstring)."""
+    none = Admitted(None, np.zeros(0), 0)
+    backbone = lik.observation.backbone_px
+    if not settings.proposals or "conic" not in lik.term_names or backbone is None or len(backbone) < 5:
+        return none
+    mode_z = found.mode_log_evidence
+    top = np.argsort(-mode_z, kind="stable")[: settings.max_modes]
+    all_peaks = found.peaks[found.reps]
+    poses, parents = [], []
+    for k, m in enumerate(top):
+        others = np.delete(all_peaks, m, axis=0)
+        p = mode_proposals(all_peaks[m], lik, existing=others, frame_ellipse=(k == 0))
+        poses.append(p)
+        parents += [int(found.reps[m])] * p.shape[0]
+    n_prop = len(parents)
+    if n_prop == 0:
+        return none
+    cand = window.subset(parents)
+    cand.poses[-1] = np.concatenate(poses)
+    lin_c = cand.linearize()
+    _, m_c, _ = laplace_terms(lin_c, cand.evidence, settings.max_step)
+    _, m_modes, _ = laplace_terms(lin.subset(found.reps), window.evidence[found.reps], settings.max_step)
+    keep = np.flatnonzero(np.isfinite(m_c) & (m_c <= np.min(m_modes) + settings.screen_nats))
+    keep = keep[np.argsort(m_c[keep], kind="stable")[: settings.max_candidates]]
+    if keep.size == 0:
+        return Admitted(None, np.zeros(0), n_prop)
+    cand = cand.subset(keep)
+    lin_c = polish(cand, lin_c.subset(keep), settings.polish_iters)
+    step_c, _, z_c = laplace_terms(lin_c, cand.evidence, settings.max_step)
+    peaks_c = cand.newest @ se3_exp(step_c)
+    # the modes are compared polished, as the candidates are (:func:`settle`)
+    found, _, _ = settle(window, lin, found, settings.polish_iters, max_modes=settings.max_modes)
+    mode_z = found.mode_log_evidence
+    all_peaks = found.peaks[found.reps]
+    best = float(np.max(mode_z))
+    accepted: list[int] = []
+    for i in np.argsort(-z_c, kind="stable"):
+        if not z_c[i] >= best - settings.admit_nats:
+            break
+        ref = np.concatenate([all_peaks, peaks_c[accepted]])
+        if np.any(scaled_distance(peaks_c[i], ref) < settings.separation):
+            continue
+        accepted.append(int(i))
+    # the max_modes best of modes and candidates
+    union = np.concatenate([mode_z, z_c[accepted]])
+    slots = np.argsort(-union, kind="stable")[: settings.max_modes]
+    chosen = [accepted[j - mode_z.shape[0]] for j in slots if j >= mode_z.shape[0]]
+    if not chosen:
+        return Admitted(None, np.zeros(0), n_prop, found)
+    return Admitted(cand.subset(chosen), z_c[chosen], n_prop, found)
+
+
+def allot(window: Window, found: Basins, admitted: Admitted, settings: ModeSettings,
+          rng: np.random.Generator, jitter_sigma: np.ndarray) -> int:
+    """Give every admitted mode at least ``floor`` hypotheses (module docstring); returns how many were moved."""
+    if admitted.basins is not None:
+        found = admitted.basins
+    N = window.newest.shape[0]
+    n_new = 0 if admitted.windows is None else admitted.log_evidence.shape[0]
+    floor = max(1, min(settings.floor, N // max(1, settings.max_modes)))
+    mode_z = found.mode_log_evidence
+    union = np.concatenate([mode_z, admitted.log_evidence])
+    slots = np.argsort(-union, kind="stable")[: settings.max_modes]
+    best = float(np.max(union))
+    kept_modes = [int(j) for j in slots if j < mode_z.shape[0]]
+    counts = found.counts()
+    # sources: (window, row, how many copies) for under-populated admitted modes
+    needs: list[tuple[Window, int, int, bool]] = []
+    for m in kept_modes:
+        if counts[m] < floor and mode_z[m] >= best - settings.admit_nats:
+            needs.append((window, int(found.reps[m]), floor - int(counts[m]), False))
+    for a in range(n_new):
+        needs.append((admitted.windows, a, floor, True))
+    if not needs:
+        return 0
+    # donors, in order: modes outside the K best (worst first), then the most populous mode's worst members
+    cost = -found.log_evidence
+    outside = [m for m in np.argsort(mode_z, kind="stable") if m not in kept_modes]
+    donors = [int(i) for m in outside for i in np.flatnonzero(found.labels == m)[np.argsort(-cost[found.labels == m])]]
+    protected = set(int(r) for r in found.reps[kept_modes])
+    remaining = counts.copy()
+    moved = 0
+    for src, row, n, new in needs:
+        for c in range(n):
+            if not donors:
+                big = int(np.argmax(np.where(np.isin(np.arange(len(remaining)), kept_modes), remaining, -1)))
+                if remaining[big] <= floor:
+                    return moved
+                members = [int(i) for i in np.flatnonzero(found.labels == big) if int(i) not in protected]
+                members.sort(key=lambda i: -cost[i])
+                donors = members[: int(remaining[big]) - floor]
+                remaining[big] = floor
+                if not donors:
+                    return moved
+            dst = donors.pop(0)
+            window.overwrite([dst], src, [row])
+            if c > 0 or not new:
+                window.poses[-1, dst] = window.poses[-1, dst] @ se3_exp(rng.normal(size=6) * jitter_sigma)
+            moved += 1
+    return moved

@@ -1,0 +1,133 @@
+"""SVN's mode bookkeeping: basins by predicted peaks, Laplace evidence, proposals admitted only when earned."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from factors.lie import local, se3_exp
+from pinpoint_fg.likelihood import FrameLikelihood, Switches
+from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.observation import Observation
+from pinpoint_fg.posterior_summary import bimodal_from_modes
+from pinpoint_fg.trackers.base import TrackerConfig
+from pinpoint_fg.trackers.svn import FIRST_PRIOR_SIGMA, SvnTracker
+from pinpoint_fg.trackers.svn_modes import SCALE, ModeSettings, basins, laplace_terms
+from pinpoint_fg.window import Linearization, Window
+from tests.test_trackers_svn import CAM, NEEDLE, _ambiguous_scene, _grasper, _mode_shares
+
+
+def _quadratic_lin(T: np.ndarray, peak: np.ndarray, H: np.ndarray, offset: float) -> Linearization:
+    """The exact right-chart model of ``offset + 1/2 Log(peak^-1 x)^T H Log(peak^-1 x)`` at poses T (to 1st order)."""
+    xi = local(np.broadcast_to(peak, T.shape), T)  # T = peak Exp(xi); the peak is at d = -xi from T
+    g = xi @ H
+    value = offset + 0.5 * np.einsum("ni,ni->n", xi, g)
+    N = T.shape[0]
+    return Linearization(value, g, np.broadcast_to(H, (N, 6, 6)).copy(), [], [], [], value.copy())
+
+
+def test_basins_group_hypotheses_by_predicted_peak_and_weigh_them_by_evidence() -> None:
+    rng = np.random.default_rng(3)
+    H = np.diag(1.0 / np.r_[[np.deg2rad(3.0)] * 3, [0.5e-3] * 3] ** 2)
+    peak_a = se3_exp(np.r_[0.3, -0.2, 0.1, 0.0, 0.0, 0.05])
+    peak_b = peak_a @ se3_exp(np.r_[np.pi / 3, 0, 0, 0, 0, 0])  # 60 deg away
+    # particles spread by about the kernel scale (repulsion) around each peak: 30 and 20 of them
+    Ta = peak_a @ se3_exp(rng.normal(size=(30, 6)) * SCALE)
+    Tb = peak_b @ se3_exp(rng.normal(size=(20, 6)) * SCALE)
+    T = np.concatenate([Ta, Tb])
+    lin_a, lin_b = _quadratic_lin(Ta, peak_a, H, 5.0), _quadratic_lin(Tb, peak_b, H, 6.0)
+    lin = Linearization(np.r_[lin_a.value, lin_b.value], np.concatenate([lin_a.grad, lin_b.grad]),
+                        np.concatenate([lin_a.hess, lin_b.hess]), [], [], [], np.r_[lin_a.value, lin_b.value])
+    found = basins(T, lin, np.zeros(50))
+    assert found.reps.shape == (2,)
+    assert np.array_equal(found.labels, np.r_[np.zeros(30, int), np.ones(20, int)])
+    # every hypothesis predicts its own mode's peak, to the quadratic model's precision
+    err_a = np.linalg.norm(local(np.broadcast_to(peak_a, (30, 4, 4)), found.peaks[:30]) / SCALE, axis=1)
+    assert err_a.max() < 0.02, err_a.max()
+    # equal curvature: the weights are the e^-1 ratio of the offsets, whatever the particle counts
+    assert np.allclose(found.weights, [1.0 / (1.0 + np.e ** -1), np.e ** -1 / (1.0 + np.e ** -1)], atol=1e-6)
+    # converged exactly where the peak is within max_step scaled units
+    dist = np.r_[np.linalg.norm(local(np.broadcast_to(peak_a, (30, 4, 4)), Ta) / SCALE, axis=1),
+                 np.linalg.norm(local(np.broadcast_to(peak_b, (20, 4, 4)), Tb) / SCALE, axis=1)]
+    assert np.array_equal(found.converged, dist < ModeSettings().max_step)
+    # a hypothesis far from its peak (step beyond max_step) is flagged: its evidence is only a guess
+    far = _quadratic_lin(peak_a @ se3_exp(np.r_[0.6, 0, 0, 0, 0, 0])[None], peak_a, H, 5.0)
+    assert not basins(peak_a[None] @ se3_exp(np.r_[0.6, 0, 0, 0, 0, 0])[None], far, np.zeros(1)).converged[0]
+
+
+def test_laplace_evidence_prefers_the_broader_of_two_equally_high_peaks() -> None:
+    """Equal peak cost, one mode twice as wide on every axis: log Z differs by 6 log 2 (= -1/2 log det ratio)."""
+    peak = se3_exp(np.r_[0.1, 0.2, 0.3, 0.0, 0.0, 0.05])
+    H = np.diag(1.0 / np.r_[[np.deg2rad(3.0)] * 3, [0.5e-3] * 3] ** 2)
+    T = peak[None] @ se3_exp(np.r_[0.01, 0, 0, 1e-4, 0, 0])[None]
+    _, m1, z1 = laplace_terms(_quadratic_lin(T, peak, H, 2.0), np.zeros(1))
+    _, m2, z2 = laplace_terms(_quadratic_lin(T, peak, H / 4.0, 2.0), np.zeros(1))
+    assert np.allclose([m1[0], m2[0]], 2.0, atol=1e-9)
+    assert abs((z2[0] - z1[0]) - 6.0 * np.log(2.0)) < 1e-9
+
+
+def test_window_evidence_is_the_laplace_marginal_likelihood_of_the_marginalised_pose() -> None:
+    """Prior + motion only (no measurements): the joint is Gaussian at the optimum, so evidence + 1/2 log det of the
+    newest pose's information is 1/2 log det of the whole information: it differs between priors of width s and 2s
+    by exactly 6 log 2 (the motion term's determinant is the same for both)."""
+    T0 = se3_exp(np.r_[0.2, -0.1, 0.3, 0.001, 0.002, 0.05])
+    empty = FrameLikelihood(Observation(0, 0.0), TrackerConfig(CAM, NEEDLE).model)
+    assert empty.dim == 0
+    Q = np.diag(np.r_[[0.02 ** 2] * 3, [0.3e-3 ** 2] * 3])
+    w = Window(1, Q, forgetting=1.0)
+    sigma = np.r_[[np.deg2rad(10.0)] * 3, [2e-3] * 3]
+    w.start(np.stack([T0, T0]), empty, sigma)
+    w.prior_W[1] = w.prior_W[1] / 2.0  # hypothesis 1: prior twice as wide
+    delta = se3_exp(np.r_[0.01, 0.0, 0.0, 1e-4, 0.0, 0.0])
+    w.push(FrameLikelihood(Observation(1, 1 / 30), TrackerConfig(CAM, NEEDLE).model), delta, use_motion=True)
+    lin = w.linearize()
+    total = w.evidence + 0.5 * np.linalg.slogdet(lin.hess)[1]
+    assert abs((total[0] - total[1]) - 6.0 * np.log(2.0)) < 1e-6, total[0] - total[1]
+
+
+def _snapshots(T: np.ndarray, arc: np.ndarray, n: int, dt_s: float, kinematics: bool) -> list[Observation]:
+    rng = np.random.default_rng(5)
+    return [Observation(k, k * dt_s, backbone_px=arc + rng.normal(size=arc.shape) * 0.5,
+                        cam_T_grasper=_grasper(T) if kinematics else None) for k in range(n)]
+
+
+def _start_in_the_true_mode(tr: SvnTracker, T: np.ndarray, first: Observation) -> None:
+    """Frame 0 processed with every hypothesis near the truth (as if the other circle had been lost)."""
+    motion = tr.motion_input(first)
+    near = T @ se3_exp(np.random.default_rng(0).normal(size=(tr.config.particles, 6)) * np.r_[[1e-2] * 3, [1e-4] * 3])
+    tr.window.start(near, FrameLikelihood(motion.observation, tr.config.model), FIRST_PRIOR_SIGMA)
+    tr._transport(30)
+    tr.frames_seen = 1
+
+
+def test_a_mode_the_particles_lost_is_proposed_and_admitted_when_the_frames_are_far_apart() -> None:
+    """Every particle in the true circle; frames 1 s apart without kinematics (the random walk scaled by the elapsed
+    time): the frame's ellipse proposes the other circle, which explains the frame as well and costs little under
+    the wide prior — it is admitted, holds at least the floor of hypotheses, and the modes call the frame bimodal."""
+    T, alt_normal, arc = _ambiguous_scene()
+    sw = Switches(grasp_perpendicular=False, grasp_position=False, tip=False, tail=False)
+    tr = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), sw, particles=40))
+    obs = _snapshots(T, arc, 3, 1.0, kinematics=False)
+    _start_in_the_true_mode(tr, T, obs[0])
+    assert _mode_shares(tr.particles, T, alt_normal)[1] == 0.0
+    est = tr.step(obs[1])
+    assert est.extra["proposals"] > 0 and est.extra["allotted"] >= ModeSettings().floor
+    share_true, share_alt = _mode_shares(est.particles, T, alt_normal)
+    assert min(share_true, share_alt) * 40 >= ModeSettings().floor, (share_true, share_alt)
+    assert abs(sum(m.weight for m in est.modes) - 1.0) < 1e-12
+    assert bimodal_from_modes(est.modes)
+
+
+def test_no_mode_is_admitted_against_tight_kinematics() -> None:
+    """The same ambiguous frames at 30 Hz with the grasper's pose: switching circles would be a 50 deg jump the
+    motion model rules out (hundreds of nats), so nothing is polished or allotted and one mode of weight 1 remains."""
+    T, alt_normal, arc = _ambiguous_scene()
+    sw = Switches(grasp_perpendicular=False, tip=False, tail=False)
+    tr = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), sw, particles=40))
+    obs = _snapshots(T, arc, 4, 1 / 30, kinematics=True)
+    _start_in_the_true_mode(tr, T, obs[0])
+    for o in obs[1:]:
+        est = tr.step(o)
+        assert est.extra["proposals"] > 0 and est.extra["allotted"] == 0
+    assert _mode_shares(est.particles, T, alt_normal) == (1.0, 0.0)
+    assert len(est.modes) == 1 and est.modes[0].weight == 1.0
+    assert not bimodal_from_modes(est.modes)

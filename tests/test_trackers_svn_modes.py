@@ -131,3 +131,33 @@ def test_no_mode_is_admitted_against_tight_kinematics() -> None:
     assert _mode_shares(est.particles, T, alt_normal) == (1.0, 0.0)
     assert len(est.modes) == 1 and est.modes[0].weight == 1.0
     assert not bimodal_from_modes(est.modes)
+
+
+def test_allotment_gives_every_admitted_mode_its_floor_from_outside_modes_first_then_the_largest() -> None:
+    from pinpoint_fg.trackers.svn_modes import Admitted, Basins, allot
+
+    model = TrackerConfig(CAM, NEEDLE).model
+    Q = np.diag(np.r_[[0.02 ** 2] * 3, [0.3e-3 ** 2] * 3])
+    base = [se3_exp(np.r_[0.1 * k, 0.2, 0.3, 0.0, 0.0, 0.05 + 0.01 * k]) for k in range(4)]
+    labels = np.r_[np.zeros(7, int), np.ones(2, int), np.full(3, 2)]  # 7 in mode 0, 2 in mode 1, 3 in mode 2
+    T = np.stack([base[m] for m in labels])
+    w = Window(1, Q, forgetting=1.0)
+    w.start(T, FrameLikelihood(Observation(0, 0.0), model), FIRST_PRIOR_SIGMA)
+    w.evidence[:] = np.arange(12.0)
+    reps = np.array([0, 7, 9])
+    z_modes = np.array([0.0, -2.0, -20.0])  # mode 2 falls outside the K = 3 best once a candidate is admitted
+    found = Basins(z_modes[labels], T.copy(), labels, reps, np.ones(12, bool))
+    cand = w.subset([0])
+    cand.poses[-1] = base[3][None]
+    cand.evidence[:] = 100.0
+    settings = ModeSettings(max_modes=3, floor=3)
+    moved = allot(w, found, Admitted(cand, np.array([-1.0]), 5), settings, np.random.default_rng(0),
+                  np.r_[[1e-3] * 3, [1e-5] * 3])
+    assert moved == 4  # one copy tops mode 1 up to 3, three copies populate the new mode
+    near = lambda P, Q: np.linalg.norm(local(np.broadcast_to(Q, P.shape), P) / SCALE, axis=1) < 0.1  # noqa: E731
+    in_mode = [near(w.newest, base[m]) for m in range(4)]
+    assert [int(x.sum()) for x in in_mode] == [6, 3, 0, 3]
+    assert np.array_equal(w.newest[reps[:2]], T[reps[:2]])  # the modes' best hypotheses are never donors
+    new = np.flatnonzero(in_mode[3])
+    assert np.all(w.evidence[new] == 100.0)  # the copies carry the candidate's window: prior and evidence
+    assert np.any(np.all(w.newest[new] == base[3], axis=(1, 2)))  # the first copy is exact, the others jittered

@@ -42,16 +42,18 @@ Per frame (DESIGN.md §Inference):
    particle of one mode predicts the same peak, however far repulsion has spread them, so
    genuinely ambiguous modes (a few nats apart) are untouched. The evidence is never forgotten
    (``SvnSettings.forgetting``).
-7. **Report** — the modes (``Estimate.modes``, at most ``K``): each mode's weight is
-   ``softmax`` of the modes' log-evidence (particle counts are not weights: transport cannot
-   move mass between basins), its peak its best hypothesis (the MAP mode's polished), its
-   covariance its members' tangent covariance (or the inverse information when it has fewer
-   than 7 members). The MAP is the best hypothesis of the heaviest mode, first polished to
-   convergence by damped Gauss-Newton on its own window (a one-hypothesis
-   :meth:`~pinpoint_fg.window.Window.subset`; steps accepted only when its cost drops; at most
-   ``map_polish_iters``): repulsion keeps every particle, the best included, off its mode's peak
-   by about the kernel scale, and the reported estimate should be the peak. Then q95 spread and covariance
-   around it; with L > 1 the smoothed pose of frame k - L + 1. When every hypothesis is
+7. **Report** — first the best hypothesis of each of the ``2K`` best modes is polished to
+   convergence by damped Gauss-Newton on its own window
+   (:func:`~pinpoint_fg.trackers.svn_modes.settle`: batched one-hypothesis
+   windows of :meth:`~pinpoint_fg.window.Window.subset`, steps accepted only when the cost drops, at most
+   ``map_polish_iters``): repulsion keeps every particle off its mode's peak by about the kernel
+   scale, the reported estimate should be the peak, and modes are compared at their peaks. The
+   MAP is then the lowest-cost hypothesis (``map_by_evidence``: the heaviest mode's best). The
+   modes (``Estimate.modes``, at most ``K``): each mode's weight is ``softmax`` of the modes'
+   log-evidence (particle counts are not weights: transport cannot move mass between basins),
+   its peak its polished best hypothesis, its covariance its members' tangent covariance (or
+   the inverse information when it has fewer than 7 members). Then q95 spread and covariance
+   around the MAP; with L > 1 the smoothed pose of frame k - L + 1. When every hypothesis is
    implausible (the best one's cost far above what the frame's residual count allows) the
    particles are re-seeded from this frame.
 
@@ -133,8 +135,10 @@ class SvnSettings:
     this many nats: the pose is then within ~0.05 posterior standard deviations of the peak."""
     jitter_sigma: tuple[float, ...] = (np.deg2rad(1.0),) * 3 + (0.2e-3,) * 3
     """Spread of the copies that replace pruned hypotheses, [omega x3 (rad), v x3 (m)]."""
-    map_by_evidence: bool = True
-    """The MAP is the best hypothesis of the mode with the highest Laplace evidence (False: the lowest cost)."""
+    map_by_evidence: bool = False
+    """The MAP is the best hypothesis of the mode with the highest Laplace evidence (the most posterior mass)
+    instead of the lowest-cost hypothesis (the highest posterior density, default). They differ only when a
+    broad mode outweighs a higher, narrower peak; on a first frame that is the twin circle as often as not."""
     modes: ModeSettings = field(default_factory=ModeSettings)
     """Mode proposals, Laplace admission and the per-mode floor of hypotheses (:mod:`.svn_modes`)."""
 
@@ -323,7 +327,7 @@ class SvnTracker(Tracker):
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])
-        else:
+        else:  # the highest posterior density: every compared mode's best hypothesis is at its peak
             i = int(np.argmin(value))
         index = self._prune(np.where(found.converged, found.log_evidence, np.inf), value)
         modes = self._modes(found, index, i)

@@ -70,7 +70,7 @@ from pinpoint_fg.io.recording import (
     _json_shown,
     _shown,
 )
-from pinpoint_fg.posterior_modes import Mode
+from pinpoint_fg.posterior.modes import Mode
 
 RESULT_FORMAT = "pinpoint-result"
 RESULT_VERSION = 1

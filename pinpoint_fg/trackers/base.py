@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera
-from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.kinematics_check import KinematicsCheckConfig, KinematicsMonitor, MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig, format_robust
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.posterior_modes import Mode
+from pinpoint_fg.posterior.modes import Mode
+from pinpoint_fg.posterior.spread import tangent_spread
 
 
 @dataclass(frozen=True)

@@ -89,7 +89,7 @@ log-posterior ``-inf``; ``weights`` are the normalised branch weights, ``log_pos
 logarithms; ``modes`` lists every branch (pose, weight, GTSAM marginal covariance). q95 and
 ``cov_xi`` describe the whole mixture: fixed standard-normal draws split among the branches by
 weight, ``x = x_b Exp(S_b z)`` (``S_b S_b^T`` the branch's marginal), spread around the MAP exactly
-as the particle methods do (:func:`pinpoint_fg.eval.metrics.tangent_spread`); with one branch this
+as the particle methods do (:func:`pinpoint_fg.posterior.spread.tangent_spread`); with one branch this
 equals ``map``'s numbers. ``extra``: ``branches`` (live count), ``best_weight``, ``proposals``
 (screened this frame), ``admitted`` (new branches), ``recovered`` (GTSAM recoveries).
 """
@@ -103,11 +103,11 @@ import gtsam
 import numpy as np
 
 from factors.lie import local, se3_exp
-from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.posterior_modes import Mode
+from pinpoint_fg.posterior.modes import Mode
+from pinpoint_fg.posterior.spread import tangent_spread
 from pinpoint_fg.proposals import (
     DEFAULT_SEPARATION,
     gaussian_log_normaliser,

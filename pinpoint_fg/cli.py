@@ -47,7 +47,8 @@ def _probability(text: str) -> float:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from pinpoint_fg.io.recording import summarize_recording, validate_run
+    from pinpoint_fg.io.recording.reader import summarize_recording
+    from pinpoint_fg.io.recording.validator import validate_run
 
     recording, errors = validate_run(args.run)
     if errors:

@@ -22,7 +22,8 @@ from tqdm import tqdm
 from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.outdir import prepare_output_dir
-from pinpoint_fg.io.recording import Recording, read_recording
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result import FrameEstimate, ResultWriter
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig

@@ -51,7 +51,8 @@ from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
 from pinpoint_fg.eval.modes import ResultModes, modes_of_result, reference_rates, truth_kept
-from pinpoint_fg.io.recording import Recording, read_recording
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result import MODES_CSV, Result, expand_result_dirs, read_result
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig

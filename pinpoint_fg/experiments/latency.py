@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.observe import observe_frame
 
 

@@ -62,14 +62,8 @@ import pinpoint_fg
 from factors.geometry import pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.jsonfile import load_json
-from pinpoint_fg.io.recording import (
-    MAX_FRAME_INDEX,
-    QUAT_NORM_TOL,
-    _atomic_write_text,
-    _check_pose,
-    _json_shown,
-    _shown,
-)
+from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, json_shown, shown
+from pinpoint_fg.io.recording.writer import atomic_write_text, check_pose
 from pinpoint_fg.posterior.modes import Mode
 
 RESULT_FORMAT = "pinpoint-result"
@@ -273,7 +267,7 @@ def _check_modes(where: str, modes: Any) -> tuple[Mode, ...]:
     if not 1 <= len(modes) <= MAX_MODES:
         raise ValueError(f"{where}: modes must hold 1 to {MAX_MODES} modes, got {len(modes)}")
     for k, m in enumerate(modes):
-        _check_pose(f"{where}: mode {k} cam_T_needle", m.cam_T_needle)
+        check_pose(f"{where}: mode {k} cam_T_needle", m.cam_T_needle)
         wk = _scalar(f"{where}: mode {k} weight", m.weight, allow_nan=False)
         if not 0.0 <= wk <= 1.0:
             raise ValueError(f"{where}: mode {k} weight must lie in [0, 1], got {wk!r}")
@@ -378,7 +372,7 @@ class ResultWriter:
 
     def _write_info(self) -> None:
         text = json.dumps(self._info, indent=2, allow_nan=False) + "\n"
-        _atomic_write_text(self.out_dir / RESULT_JSON, text)
+        atomic_write_text(self.out_dir / RESULT_JSON, text)
 
     # -- per frame -------------------------------------------------------------------------
     def _check(self, est: FrameEstimate) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
@@ -388,7 +382,7 @@ class ResultWriter:
         if self._last_frame is not None and f <= self._last_frame:
             raise ValueError(f"frame {f} is not greater than the previous frame {self._last_frame}")
         _scalar(f"frame {f}: t_s", est.t_s, allow_nan=False)
-        _check_pose(f"frame {f}: cam_T_needle", est.cam_T_needle)
+        check_pose(f"frame {f}: cam_T_needle", est.cam_T_needle)
         for name in ("q95_trans_m", "q95_rot_rad", "latency_ms"):
             _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True)
         if not isinstance(est.bimodal, bool | np.bool_) and est.bimodal not in (0, 1):
@@ -502,7 +496,7 @@ class ResultWriter:
         if self._last_smoothed is not None and f <= self._last_smoothed:
             raise ValueError(f"smoothed frame {f} is not greater than the previous one {self._last_smoothed}")
         _scalar(f"smoothed frame {f}: t_s", t_s, allow_nan=False)
-        T = _check_pose(f"smoothed frame {f}: cam_T_needle", cam_T_needle)
+        T = check_pose(f"smoothed frame {f}: cam_T_needle", cam_T_needle)
         self._smooth_csv.writerow([str(f), _cell(t_s), *_pose_cells(T)])
         self._smooth.flush()
         self._last_smoothed = f
@@ -605,9 +599,9 @@ def _read_info(root: Path) -> dict:
         v = doc[key]
         if not isinstance(v, allowed) or (bool not in allowed and isinstance(v, bool)):
             names = " or ".join("null" if t is type(None) else t.__name__ for t in allowed)
-            raise InputError(f"must be {names}, got {_json_shown(v)}", file=path, column=key)
+            raise InputError(f"must be {names}, got {json_shown(v)}", file=path, column=key)
     if doc["format"] != RESULT_FORMAT:
-        raise InputError(f"must be {RESULT_FORMAT!r}, got {_json_shown(doc['format'])}", file=path, column="format")
+        raise InputError(f"must be {RESULT_FORMAT!r}, got {json_shown(doc['format'])}", file=path, column="format")
     if doc["version"] != RESULT_VERSION:
         raise InputError(
             f"unsupported version {doc['version']} (this reader knows {RESULT_VERSION})",
@@ -656,19 +650,19 @@ def _num(path: Path, r: int, column: str, cell: str, allow_nan: bool) -> float:
         x = float(cell)
         if math.isfinite(x):
             return x
-        raise InputError(f"number {_shown(cell)} overflows to infinity", file=path, row=r, column=column)
+        raise InputError(f"number {shown(cell)} overflows to infinity", file=path, row=r, column=column)
     if allow_nan and (_NAN.fullmatch(cell) or cell == ""):
         return math.nan
     what = "number" if allow_nan else "finite number"
-    raise InputError(f"not a {what}: {_shown(cell)}", file=path, row=r, column=column)
+    raise InputError(f"not a {what}: {shown(cell)}", file=path, row=r, column=column)
 
 
 def _int(path: Path, r: int, column: str, cell: str) -> int:
     """A non-negative integer cell that fits int64 (frame indices, iterations)."""
     if not _INTEGER.fullmatch(cell):
-        raise InputError(f"not a non-negative integer: {_shown(cell)}", file=path, row=r, column=column)
+        raise InputError(f"not a non-negative integer: {shown(cell)}", file=path, row=r, column=column)
     if len(cell.lstrip("0")) > 19 or int(cell) > MAX_FRAME_INDEX:
-        raise InputError(f"{_shown(cell)} is beyond int64 (at most {MAX_FRAME_INDEX})", file=path, row=r,
+        raise InputError(f"{shown(cell)} is beyond int64 (at most {MAX_FRAME_INDEX})", file=path, row=r,
                          column=column)
     return int(cell)
 
@@ -797,7 +791,7 @@ def _read_npz(path: Path, weighted: bool) -> ParticleHistory:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure of the zip/npy parsers on these bytes is bad input
         raise InputError(
-            f"cannot load with np.load(allow_pickle=False): {type(exc).__name__}: {_shown(str(exc), 120)}", file=path
+            f"cannot load with np.load(allow_pickle=False): {type(exc).__name__}: {shown(str(exc), 120)}", file=path
         ) from None
     return _check_particle_arrays(path, arrays, weighted)
 
@@ -886,7 +880,7 @@ def read_result(out_dir: str | Path) -> Result:
         lat[r - 1] = _num(est_path, r, "latency_ms", cells[idx["latency_ms"]], allow_nan=True)
         b = cells[idx["bimodal"]]
         if b not in ("0", "1"):
-            raise InputError(f"must be 0 or 1, got {_shown(b)}", file=est_path, row=r, column="bimodal")
+            raise InputError(f"must be 0 or 1, got {shown(b)}", file=est_path, row=r, column="bimodal")
         bimodal[r - 1] = b == "1"
         iters[r - 1] = _int(est_path, r, "iterations", cells[idx["iterations"]])
     for c in header:

@@ -24,7 +24,8 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result import FrameEstimate, ResultWriter
+from pinpoint_fg.io.result.schema import FrameEstimate
+from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observe import observe_frame

@@ -10,7 +10,7 @@ import pytest
 
 from pinpoint_fg.cli import main
 from pinpoint_fg.experiments.benchmark import BENCH_SCENARIOS
-from pinpoint_fg.io.result import read_modes, read_result
+from pinpoint_fg.io.result.reader import read_modes, read_result
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,8 @@ from pinpoint_fg.eval.modes import reference_rates
 from pinpoint_fg.eval.report import evaluate_results
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result import FrameEstimate, ResultWriter
+from pinpoint_fg.io.result.schema import FrameEstimate
+from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.sim.scenarios import simulate
 

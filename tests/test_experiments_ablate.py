@@ -11,7 +11,7 @@ from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.report import ABLATION_VARIANTS
 from pinpoint_fg.experiments.ablate import AblationJob, ablate, ablation_jobs, run_jobs
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.sim.scenarios import simulate
 
 SMALL = tuple(v for v in ABLATION_VARIANTS if v[0] in ("full", "no-dense", "svgd"))

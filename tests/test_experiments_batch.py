@@ -12,7 +12,7 @@ import pytest
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.experiments.batch import BatchError, batch_track, result_dir_names, run_batch
-from pinpoint_fg.io.result import expand_result_dirs
+from pinpoint_fg.io.result.reader import expand_result_dirs
 from pinpoint_fg.sim.scenarios import simulate
 from pinpoint_fg.track import track_recording
 

@@ -16,7 +16,7 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.bop import BopImportConfig, import_bop
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.validator import validate_run
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result.reader import read_result
 from tests.bop_scene import CAMERA, NEEDLE_OBJ_ID, NEEDLE_RGB, write_bop_scene
 
 N_IMAGES = 8

@@ -27,7 +27,8 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.validator import validate_run
 from pinpoint_fg.io.recording.writer import write_recording
-from pinpoint_fg.io.result import ResultWriter, read_result
+from pinpoint_fg.io.result.reader import read_result
+from pinpoint_fg.io.result.writer import ResultWriter
 from tests.test_io_recording import make_frames, make_info
 from tests.test_io_result import make_estimates
 

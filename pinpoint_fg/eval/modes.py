@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.io.result import MAX_MODES, MODES_CSV, ModeHistory, Result, read_modes
+from pinpoint_fg.io.result.reader import read_modes
+from pinpoint_fg.io.result.schema import MAX_MODES, MODES_CSV, ModeHistory, Result
 from pinpoint_fg.posterior.summary import BIMODAL_MODE_WEIGHT, modes_from_particles
 
 TRUTH_KEPT_TRANS_M = 2e-3

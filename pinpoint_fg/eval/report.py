@@ -53,7 +53,8 @@ from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors
 from pinpoint_fg.eval.modes import ResultModes, modes_of_result, reference_rates, truth_kept
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result import MODES_CSV, Result, expand_result_dirs, read_result
+from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
+from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.posterior.bimodality import assess_bimodality, systematic_resample, tangent_at_map

@@ -14,10 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from factors.geometry import NeedleModel, PinholeCamera
 from pinpoint_fg.kinematics_check import KinematicsCheckConfig, KinematicsMonitor, MotionInput
-from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
-from pinpoint_fg.noise import NoiseConfig, format_robust
+from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
+from pinpoint_fg.noise import format_robust
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.posterior.spread import tangent_spread
@@ -93,17 +92,10 @@ def summarize(particles: np.ndarray, log_posterior: np.ndarray, weights: np.ndar
 
 
 @dataclass(frozen=True)
-class TrackerConfig:
-    """Settings common to every tracker."""
+class TrackerConfig(MeasurementModel):
+    """Settings common to every tracker: a :class:`~pinpoint_fg.likelihood.MeasurementModel` (camera, needle,
+    noise, switches, depth penalty: declared once, there) extended by the inference settings below."""
 
-    camera: PinholeCamera
-    """Camera of the recording."""
-    needle: NeedleModel
-    """Needle of the recording."""
-    noise: NoiseConfig = NoiseConfig()
-    """Residual noise (Table I defaults or a calibration file)."""
-    switches: Switches = Switches()
-    """Enabled likelihood terms."""
     particles: int = 50
     """Number of hypotheses."""
     window: int = 1
@@ -115,8 +107,8 @@ class TrackerConfig:
 
     @property
     def model(self) -> MeasurementModel:
-        """The measurement model every frame's likelihood uses."""
-        return MeasurementModel(self.camera, self.needle, self.noise, self.switches)
+        """The measurement model every frame's likelihood uses (the measurement fields alone)."""
+        return MeasurementModel(self.camera, self.needle, self.noise, self.switches, self.min_depth_m)
 
 
 class Tracker(abc.ABC):

@@ -24,7 +24,14 @@ from pinpoint_fg.posterior.spread import tangent_spread
 
 @dataclass(frozen=True)
 class Estimate:
-    """A tracker's output for one frame."""
+    """A tracker's output for one frame.
+
+    Its result-file counterpart is :class:`pinpoint_fg.io.result.schema.FrameEstimate`, made from it by
+    ``pinpoint_fg.track.to_frame_estimate``: that adds what is judged after the step (the GMM verdict, the
+    modes, the weak direction), turns ``reseeded`` into an extra column and drops ``cov_xi`` (not on disk).
+    The two stay separate types: the writer (io, below the trackers) validates rows in the on-disk names
+    (``particles_T``, ``weight``), and each tracker builds its estimate without the post-step summaries.
+    """
 
     frame: int
     """Frame index."""

@@ -77,7 +77,11 @@ COV_INDICES = np.triu_indices(6)
 
 @dataclass(frozen=True, eq=False)
 class FrameEstimate:
-    """What a tracker reports for one frame (one row of every result file)."""
+    """What a tracker reports for one frame (one row of every result file), in the result format's names.
+
+    Made from a tracker's :class:`~pinpoint_fg.trackers.base.Estimate` by ``pinpoint_fg.track.to_frame_estimate``
+    (which adds the verdict, the modes and the summary columns); see there why the two types are kept apart.
+    """
 
     frame: int
     """Frame index in the recording."""

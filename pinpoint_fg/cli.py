@@ -47,7 +47,8 @@ def _probability(text: str) -> float:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from pinpoint_fg.io.recording import summarize_recording, validate_run
+    from pinpoint_fg.io.recording.reader import summarize_recording
+    from pinpoint_fg.io.recording.validator import validate_run
 
     recording, errors = validate_run(args.run)
     if errors:
@@ -127,7 +128,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_ablate(args: argparse.Namespace) -> int:
-    from pinpoint_fg.eval.ablate import ablate
+    from pinpoint_fg.experiments.ablate import ablate
 
     table = ablate(args.runs, out=args.out, jobs=args.jobs, frames=args.frames, overwrite=args.overwrite)
     print(table)
@@ -157,14 +158,14 @@ def _cmd_import_bop(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from pinpoint_fg.demo import run_demo
+    from pinpoint_fg.experiments.demo import run_demo
 
     run_demo(out=args.out, frames=args.frames, jobs=args.jobs, overwrite=args.overwrite)
     return 0
 
 
 def _cmd_benchmark(args: argparse.Namespace) -> int:
-    from pinpoint_fg.demo import run_benchmark
+    from pinpoint_fg.experiments.benchmark import run_benchmark
 
     frames, grid = (args.frames, args.grid_frames)
     if args.quick:
@@ -249,7 +250,7 @@ def _add_bag_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_batch(args: argparse.Namespace) -> int:
-    from pinpoint_fg.batch import run_batch
+    from pinpoint_fg.experiments.batch import run_batch
 
     def done(run: Path, out: Path, error: str | None) -> None:
         print(f"wrote {out}" if error is None else f"failed {run}", flush=True)

@@ -233,7 +233,8 @@ def groundtruth_run(run: str | Path, board_to_needle: str | Path) -> GroundTruth
     Raises :class:`InputError` for an unreadable run or transform file, and when no frame
     of the run has an image.
     """
-    from pinpoint_fg.io.recording import read_recording, replace_ground_truth
+    from pinpoint_fg.io.recording.reader import read_recording
+    from pinpoint_fg.io.recording.writer import replace_ground_truth
 
     board_T_needle, spec = read_board_to_needle(board_to_needle)
     recording = read_recording(run)

@@ -51,7 +51,7 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.observation import Observation
 
 if TYPE_CHECKING:
-    from pinpoint_fg.io.recording import FrameRecord, Recording
+    from pinpoint_fg.io.recording.schema import FrameRecord, Recording
 
 
 def _zhang_suen_tables() -> tuple[np.ndarray, np.ndarray]:

@@ -21,14 +21,16 @@ from tqdm import tqdm
 
 from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.eval.bimodality import assess_bimodality
 from pinpoint_fg.io.outdir import prepare_output_dir
-from pinpoint_fg.io.recording import Recording, read_recording
-from pinpoint_fg.io.result import FrameEstimate, ResultWriter
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.result.schema import FrameEstimate
+from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observe import observe_frame
-from pinpoint_fg.posterior_summary import modes_of_estimate, posterior_columns
+from pinpoint_fg.posterior.bimodality import assess_bimodality
+from pinpoint_fg.posterior.summary import modes_of_estimate, posterior_columns
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
@@ -102,7 +104,7 @@ def bimodality_verdict(particles: np.ndarray, T_map: np.ndarray, weights: np.nda
 
 def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bool | None = None) -> FrameEstimate:
     """Result row of an estimate: the GMM bimodality verdict of its particle set (computed unless given), its
-    modes (modes.csv) and the extra columns ``bimodal_modes`` and ``weak_*`` (:mod:`pinpoint_fg.posterior_summary`)."""
+    modes (modes.csv) and the extra columns ``bimodal_modes`` and ``weak_*`` (:mod:`pinpoint_fg.posterior.summary`)."""
     if bimodal is None:
         bimodal = bimodality_verdict(est.particles, est.cam_T_needle, est.weights)
     modes = modes_of_estimate(est)

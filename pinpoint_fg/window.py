@@ -11,6 +11,9 @@ newest) with
 
 The frames and motions are shared by all hypotheses; only poses and priors differ.
 
+The elimination maths (Schur sweep, back-substitution, marginal prior) are pure functions in
+:mod:`pinpoint_fg.elimination`; this module owns the windows' state.
+
 **Per-particle linearisation** (:meth:`Window.linearize`): at each hypothesis's own poses the
 window's Gauss-Newton model ``c + g^T d + 1/2 d^T H d`` (``d`` stacks the right-chart tangent
 perturbations of the L poses) is block tridiagonal; a forward Schur sweep eliminates
@@ -37,77 +40,37 @@ left out), so with ``gamma = 1`` the evidence is the hypothesis's marginal likel
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
 
 import numpy as np
 
 from factors import residuals as res
 from factors.lie import local, se3_exp
+from pinpoint_fg.elimination import (
+    Linearization,
+    conditional_step,
+    eliminate_onto_newest,
+    marginal_prior,
+    motion_value,
+    sqrt_information,
+    whiten_motion,
+    whiten_prior,
+)
 from pinpoint_fg.likelihood import FrameLikelihood
 
 #: Random-walk noise per frame when the motion model is off or kinematics are missing:
 #: [omega (rad) x3, v (m) x3] = 5 deg, 1 mm (the particle filter's random walk, DESIGN.md).
 RANDOM_WALK_SIGMA = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 
-_RIDGE = 1e-12  # relative ridge added before inverting 6x6 blocks
-
-
-def _inv_psd(H: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric PSD blocks ``(..., 6, 6)``, finite even for singular H.
-
-    Jacobi-scaled first (``D^-1 H D^-1`` with ``D = sqrt(diag H)``) so the tiny ridge ``_RIDGE``
-    is unit-free: the blocks mix rad^-2 and m^-2 entries that differ by orders of magnitude.
-    """
-    Hs = 0.5 * (H + np.swapaxes(H, -1, -2))
-    d = np.sqrt(np.maximum(np.einsum("...ii->...i", Hs), 1e-300))
-    Hn = Hs / (d[..., :, None] * d[..., None, :])
-    inv = np.linalg.inv(Hn + _RIDGE * np.eye(H.shape[-1]))
-    return inv / (d[..., :, None] * d[..., None, :])
-
-
-def floor_information(H: np.ndarray, rel: float = 1e-9, abs_floor: float = 1e-6) -> np.ndarray:
-    """Symmetrise and floor eigenvalues at ``max(rel * w_max, abs_floor)`` so a prior stays PD."""
-    Hs = 0.5 * (H + np.swapaxes(H, -1, -2))
-    w, V = np.linalg.eigh(Hs)
-    w = np.maximum(w, np.maximum(rel * w[..., -1:], abs_floor))
-    return (V * w[..., None, :]) @ np.swapaxes(V, -1, -2)
-
-
-def sqrt_information(H: np.ndarray) -> np.ndarray:
-    """``W`` with ``W^T W = H`` (upper Cholesky factor), batched; H is floored first."""
-    L = np.linalg.cholesky(floor_information(H))
-    return np.swapaxes(L, -1, -2)
-
-
-@dataclass
-class Linearization:
-    """The window's Gauss-Newton model eliminated onto the newest pose, per particle."""
-
-    value: np.ndarray
-    """(N,) negative log-posterior with the older poses at their conditional optimum (GN estimate)."""
-    grad: np.ndarray
-    """(N, 6) gradient of the negative log-posterior w.r.t. the newest pose (right chart)."""
-    hess: np.ndarray
-    """(N, 6, 6) Gauss-Newton information of the newest pose, older poses eliminated."""
-    cond_inv: list[np.ndarray]
-    """Per older pose j: H_jj^-1 after the sweep, (N, 6, 6)."""
-    cond_g: list[np.ndarray]
-    """Per older pose j: the eliminated gradient g_j, (N, 6)."""
-    cond_B: list[np.ndarray]
-    """Per older pose j: the coupling block H_{j,j+1}, (N, 6, 6)."""
-    window_value: np.ndarray
-    """(N,) the window's negative log-posterior at the current poses (no elimination)."""
-    newest_part: np.ndarray | None = None
-    """(N,) the newest pose's own terms plus the last motion term at the current poses (L > 1)."""
-
-
-    def subset(self, index: np.ndarray | list[int]) -> Linearization:
-        """The same model for hypotheses ``index`` only (matches :meth:`Window.subset`)."""
-        index = np.asarray(index)
-        return Linearization(self.value[index], self.grad[index], self.hess[index],
-                             [a[index] for a in self.cond_inv], [a[index] for a in self.cond_g],
-                             [a[index] for a in self.cond_B], self.window_value[index],
-                             None if self.newest_part is None else self.newest_part[index])
+def _merged_rows(full: tuple[np.ndarray, ...], part: tuple[np.ndarray, ...], index: np.ndarray
+                 ) -> tuple[np.ndarray, ...]:
+    """Read-only copies of the arrays ``full`` with rows ``index`` replaced by those of ``part``."""
+    merged = []
+    for f, p in zip(full, part, strict=True):
+        a = f.copy()
+        a[index] = p
+        a.flags.writeable = False
+        merged.append(a)
+    return tuple(merged)
 
 
 class Window:
@@ -195,9 +158,7 @@ class Window:
     def _prior_terms(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The marginalisation prior on the oldest pose at poses T: value, gradient, information."""
         r, J = res.pose_prior_residual(T, self.prior_mean)
-        e = np.einsum("nij,nj->ni", self.prior_W, r)
-        Jw = self.prior_W @ J
-        return 0.5 * np.sum(e * e, axis=1), np.einsum("nmi,nm->ni", Jw, e), np.swapaxes(Jw, 1, 2) @ Jw
+        return whiten_prior(r, J, self.prior_W)
 
     def _prior_key(self, T: np.ndarray) -> tuple:
         """Memo key of the oldest frame's terms at poses T: the frame object and the exact values."""
@@ -228,12 +189,7 @@ class Window:
         """Motion term between poses j and j+1: value, g_prev, g_cur, H_pp, H_pc, H_cc."""
         assert self.poses is not None
         r, Jp, Jc = res.motion_residual(self.poses[j], self.poses[j + 1], self.deltas[j])
-        W = self.delta_W[j]
-        e = r @ W.T
-        Jp, Jc = W @ Jp, W @ Jc
-        JpT, JcT = np.swapaxes(Jp, 1, 2), np.swapaxes(Jc, 1, 2)
-        return (0.5 * np.sum(e * e, axis=1), np.einsum("nij,nj->ni", JpT, e), np.einsum("nij,nj->ni", JcT, e),
-                JpT @ Jp, JpT @ Jc, JcT @ Jc)
+        return whiten_motion(r, Jp, Jc, self.delta_W[j])
 
     def linearize(self) -> Linearization:
         """Gauss-Newton model of every window, eliminated onto the newest pose (see module docstring)."""
@@ -258,19 +214,7 @@ class Window:
             Hs[j + 1] = Hs[j + 1] + Hcc
             Bs.append(Hpc)
         window_value = np.sum(vals, axis=0)
-        c = window_value.copy()
-        cond_inv, cond_g = [], []
-        g_run, H_run = gs[0], Hs[0]
-        for j in range(L - 1):
-            Hinv = _inv_psd(H_run)
-            BT = np.swapaxes(Bs[j], 1, 2)
-            Hig = np.einsum("nij,nj->ni", Hinv, g_run)
-            c = c - 0.5 * np.sum(g_run * Hig, axis=1)
-            cond_inv.append(Hinv)
-            cond_g.append(g_run)
-            g_run = gs[j + 1] - np.einsum("nij,nj->ni", BT, Hig)
-            H_run = Hs[j + 1] - BT @ Hinv @ Bs[j]
-        H_run = 0.5 * (H_run + np.swapaxes(H_run, 1, 2))
+        c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs)
         return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
 
     def move_newest(self, step: np.ndarray, lin: Linearization) -> None:
@@ -284,8 +228,7 @@ class Window:
         new = [None] * self.size
         new[-1] = self.poses[-1] @ se3_exp(d)
         for j in range(self.size - 2, -1, -1):
-            rhs = lin.cond_g[j] + np.einsum("nij,nj->ni", lin.cond_B[j], d)
-            d = -np.einsum("nij,nj->ni", lin.cond_inv[j], rhs)
+            d = conditional_step(lin.cond_inv[j], lin.cond_g[j], lin.cond_B[j], d)
             new[j] = self.poses[j] @ se3_exp(d)
         self.poses = np.stack(new, axis=0)
 
@@ -307,12 +250,10 @@ class Window:
         v_new = self.frames[j].gauss_newton(cam_T_newest)[0]  # memoised: the next linearisation reuses it
         # conditional optimum of x_{L-2} given the move of the newest: linear in the newest's tangent change
         dL = local(self.poses[-1], cam_T_newest)
-        rhs = lin.cond_g[-1] + np.einsum("nij,nj->ni", lin.cond_B[-1], dL)
-        dprev = -np.einsum("nij,nj->ni", lin.cond_inv[-1], rhs)
+        dprev = conditional_step(lin.cond_inv[-1], lin.cond_g[-1], lin.cond_B[-1], dL)
         prev = self.poses[-2] @ se3_exp(dprev)
         r, _, _ = res.motion_residual(prev, cam_T_newest, self.deltas[-1])
-        e = r @ self.delta_W[-1].T
-        return v_new + 0.5 * np.sum(e * e, axis=1) + older
+        return v_new + motion_value(r, self.delta_W[-1]) + older
 
     def _newest_part_value(self, lin: Linearization) -> np.ndarray:
         """Current value of the newest pose's own terms plus the last motion term."""
@@ -320,34 +261,14 @@ class Window:
         j = self.size - 1
         v = self.frames[j].gauss_newton(self.poses[j])[0]  # memoised by the linearisation at these poses
         r, _, _ = res.motion_residual(self.poses[j - 1], self.poses[j], self.deltas[j - 1])
-        e = r @ self.delta_W[j - 1].T
-        return v + 0.5 * np.sum(e * e, axis=1)
+        return v + motion_value(r, self.delta_W[j - 1])
 
     def _marginalise_oldest(self) -> None:
         """Schur-complement the oldest pose into a Gaussian prior on the next one."""
         assert self.poses is not None and self.size >= 2
         v0, g0, H0 = self._unary(0, self.poses[0])
         r, Jp, Jc = res.motion_residual(self.poses[0], self.poses[1], self.deltas[0])
-        W = self.delta_W[0]
-        e = r @ W.T
-        Jp, Jc = W @ Jp, W @ Jc
-        JpT, JcT = np.swapaxes(Jp, 1, 2), np.swapaxes(Jc, 1, 2)
-        A = H0 + JpT @ Jp
-        gA = g0 + np.einsum("nij,nj->ni", JpT, e)
-        B = JpT @ Jc
-        C = JcT @ Jc
-        g1 = np.einsum("nij,nj->ni", JcT, e)
-        Ainv = _inv_psd(A)
-        BT = np.swapaxes(B, 1, 2)
-        Hn = floor_information(C - BT @ Ainv @ B)
-        gn = g1 - np.einsum("nij,nj->ni", BT @ Ainv, gA)
-        d_star = -np.linalg.solve(Hn, gn[..., None])[..., 0]
-        # constant left by the elimination: value at the optimum of the removed pose and of the new prior
-        c = v0 + 0.5 * np.sum(e * e, axis=1) - 0.5 * np.sum(gA * np.einsum("nij,nj->ni", Ainv, gA), axis=1)
-        c = c - 0.5 * np.sum(gn * -d_star, axis=1)
-        # Laplace: integrating the removed pose out multiplies by det(A)^-1/2 (A its conditional information), so
-        # the cost gains 1/2 log det A: the evidence is then each hypothesis's marginal likelihood, not its best path
-        c = c + 0.5 * np.linalg.slogdet(A)[1]
+        c, d_star, Hn = marginal_prior(v0, g0, H0, whiten_motion(r, Jp, Jc, self.delta_W[0]))
         self.evidence = self.forgetting * self.evidence + c
         self.prior_mean = self.poses[1] @ se3_exp(d_star)
         self.prior_W = sqrt_information(Hn)
@@ -390,13 +311,7 @@ class Window:
         if not valid:
             self._prior_memo = None
             return
-        merged = []
-        for full, part in zip(memo[1], sub_memo[1], strict=True):
-            a = full.copy()
-            a[index] = part
-            a.flags.writeable = False
-            merged.append(a)
-        self._prior_memo = (self._prior_key(self.poses[0]), tuple(merged))
+        self._prior_memo = (self._prior_key(self.poses[0]), _merged_rows(memo[1], sub_memo[1], index))
 
     def overwrite(self, index: np.ndarray | list[int], source: Window, source_index: np.ndarray | list[int]) -> None:
         """Hypotheses ``index`` become copies of ``source``'s hypotheses ``source_index``: poses, prior, evidence.

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.track import suggested_disable, tracker_config
 from pinpoint_fg.trackers.svn import SvnSettings, SvnTracker

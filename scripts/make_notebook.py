@@ -40,7 +40,7 @@ cells = [
     nbf.v4.new_markdown_cell("## 3. A bimodal frame\nThe particle set of a frame the tracker judged bimodal, in its two "
                              "principal tangent directions, with the two GMM components and the truth."),
     nbf.v4.new_code_cell(
-        "from pinpoint_fg.eval.bimodality import assess_bimodality, principal_plane, tangent_at_map\n"
+        "from pinpoint_fg.posterior.bimodality import assess_bimodality, principal_plane, tangent_at_map\n"
         "import matplotlib\n"
         "matplotlib.use('Agg')\n"
         "import matplotlib.pyplot as plt\n"

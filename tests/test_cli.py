@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from pinpoint_fg.cli import main
-from pinpoint_fg.demo import BENCH_SCENARIOS
-from pinpoint_fg.io.result import read_modes, read_result
+from pinpoint_fg.experiments.benchmark import BENCH_SCENARIOS
+from pinpoint_fg.io.result.reader import read_modes, read_result
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pinpoint_fg.cli import main
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result.reader import read_result
 
 
 def test_track_robust_flag_and_mask_spurs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -20,7 +20,7 @@ from pinpoint_fg.eval.ambiguity import (
     label_delta_nll,
     label_frames,
 )
-from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.sim.scenarios import simulate

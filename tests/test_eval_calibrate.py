@@ -13,7 +13,8 @@ from factors.lie import se3_inverse, se3_log
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.calibrate import calibrate_runs, format_table, residuals_at_truth
-from pinpoint_fg.io.recording import RecordingWriter, read_recording, replace_ground_truth
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.writer import RecordingWriter, replace_ground_truth
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.sim.config import SimConfig
 from pinpoint_fg.sim.kinematics import needle_T_grasper

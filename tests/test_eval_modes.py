@@ -14,9 +14,11 @@ from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.modes import reference_rates
 from pinpoint_fg.eval.report import evaluate_results
-from pinpoint_fg.io.recording import Recording, read_recording
-from pinpoint_fg.io.result import FrameEstimate, ResultWriter
-from pinpoint_fg.posterior_modes import Mode
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.result.schema import FrameEstimate
+from pinpoint_fg.io.result.writer import ResultWriter
+from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.sim.scenarios import simulate
 
 F = 12

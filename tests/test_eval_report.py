@@ -20,8 +20,10 @@ from pinpoint_fg.eval.report import (
     evaluate_results,
     variant_name,
 )
-from pinpoint_fg.io.recording import Recording, read_recording
-from pinpoint_fg.io.result import FrameEstimate, ResultWriter
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.result.schema import FrameEstimate
+from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.likelihood import MeasurementModel
 from pinpoint_fg.sim.scenarios import simulate
 

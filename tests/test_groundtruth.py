@@ -19,7 +19,9 @@ from pinpoint_fg.groundtruth import (
     read_board_to_needle,
     write_board_to_needle,
 )
-from pinpoint_fg.io.recording import FrameRecord, RecordingInfo, read_recording, write_recording
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.writer import write_recording
 
 CAM = PinholeCamera(700.0, 700.0, 359.5, 359.5, 720, 720, (-0.05, 0.01, 0.0, 0.0, 0.0))
 NEEDLE = NeedleModel()

@@ -13,7 +13,7 @@ from factors.geometry import PinholeCamera
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.bag import BagTopics, _BagWriter, export_bag, import_bag, read_needle_json
-from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.sim.scenarios import simulate
 
 NS = 1_000_000_000

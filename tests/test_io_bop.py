@@ -14,8 +14,9 @@ from factors.lie import local
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.bop import BopImportConfig, import_bop
-from pinpoint_fg.io.recording import read_recording, validate_run
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.validator import validate_run
+from pinpoint_fg.io.result.reader import read_result
 from tests.bop_scene import CAMERA, NEEDLE_OBJ_ID, NEEDLE_RGB, write_bop_scene
 
 N_IMAGES = 8

@@ -24,8 +24,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.recording import read_recording, validate_run, write_recording
-from pinpoint_fg.io.result import ResultWriter, read_result
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.validator import validate_run
+from pinpoint_fg.io.recording.writer import write_recording
+from pinpoint_fg.io.result.reader import read_result
+from pinpoint_fg.io.result.writer import ResultWriter
 from tests.test_io_recording import make_frames, make_info
 from tests.test_io_result import make_estimates
 

@@ -15,20 +15,11 @@ from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.recording import (
-    KNOWN_COLUMNS,
-    QUAT_NORM_TOL,
-    FrameRecord,
-    Recording,
-    RecordingInfo,
-    RecordingWriter,
-    png_size,
-    read_recording,
-    replace_ground_truth,
-    summarize_recording,
-    validate_run,
-    write_recording,
-)
+from pinpoint_fg.io.recording.png import png_size
+from pinpoint_fg.io.recording.reader import read_recording, summarize_recording
+from pinpoint_fg.io.recording.schema import KNOWN_COLUMNS, QUAT_NORM_TOL, FrameRecord, Recording, RecordingInfo
+from pinpoint_fg.io.recording.validator import validate_run
+from pinpoint_fg.io.recording.writer import RecordingWriter, replace_ground_truth, write_recording
 
 W, H = 40, 30  # a small camera keeps the PNGs tiny
 

@@ -15,13 +15,9 @@ import pytest
 import pinpoint_fg
 from factors.lie import se3_exp
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.result import (
-    ESTIMATE_COLUMNS,
-    PARTICLES_JOURNAL,
-    FrameEstimate,
-    ResultWriter,
-    read_result,
-)
+from pinpoint_fg.io.result.reader import read_result
+from pinpoint_fg.io.result.schema import ESTIMATE_COLUMNS, PARTICLES_JOURNAL, FrameEstimate
+from pinpoint_fg.io.result.writer import ResultWriter
 
 N = 7  # particles
 

@@ -11,9 +11,10 @@ import pytest
 
 from factors.lie import se3_exp
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.result import MAX_MODES, MODE_COLUMNS, MODES_CSV, read_modes, read_result
-from pinpoint_fg.posterior_modes import Mode
-from pinpoint_fg.posterior_summary import K_MAX
+from pinpoint_fg.io.result.reader import read_modes, read_result
+from pinpoint_fg.io.result.schema import MAX_MODES, MODE_COLUMNS, MODES_CSV
+from pinpoint_fg.posterior.modes import Mode
+from pinpoint_fg.posterior.summary import K_MAX
 from tests.test_io_result import make_estimates, open_writer, set_cell
 
 

@@ -11,7 +11,9 @@ import pytest
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import so3_exp
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.recording import FrameRecord, RecordingInfo, read_recording, write_recording
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.writer import write_recording
 from pinpoint_fg.observe import backbone_from_mask, iter_observations, observe_frame, zhang_suen_thin
 
 CAM = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080, (-0.05, 0.01, 0.0, 0.0, 0.0))

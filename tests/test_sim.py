@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from factors.lie import se3_inverse
 from factors.residuals import conic_residual, motion_residual
-from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.observe import backbone_from_mask
 from pinpoint_fg.sim.config import SimConfig
 from pinpoint_fg.sim.kinematics import (

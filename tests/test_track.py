@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from pinpoint_fg.cli import main
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.track import track_recording
 
 ROOT = Path(__file__).resolve().parents[1]

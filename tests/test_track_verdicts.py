@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.sim.scenarios import simulate
 from pinpoint_fg.track import track_recording
 

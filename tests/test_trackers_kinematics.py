@@ -11,7 +11,7 @@ import pytest
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
 from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.kinematics_check import KinematicsCheckConfig, KinematicsMonitor, elapsed_scale
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.noise import NoiseConfig

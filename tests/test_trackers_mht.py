@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pinpoint_fg.cli import main
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.trackers.base import TrackerConfig
 from pinpoint_fg.trackers.map import MapTracker
 from pinpoint_fg.trackers.mht import MhtConfig, MhtTracker

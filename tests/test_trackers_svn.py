@@ -7,11 +7,11 @@ import pytest
 
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import local, se3_exp
-from pinpoint_fg.eval.bimodality import assess_bimodality
 from pinpoint_fg.init import circle_poses_from_conic, fit_conic
 from pinpoint_fg.likelihood import FrameLikelihood, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation
+from pinpoint_fg.posterior.bimodality import assess_bimodality
 from pinpoint_fg.trackers.base import TrackerConfig
 from pinpoint_fg.trackers.svn import SvgdTracker, SvnTracker
 

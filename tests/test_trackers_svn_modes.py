@@ -8,7 +8,7 @@ from factors.lie import local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.posterior_summary import bimodal_from_modes
+from pinpoint_fg.posterior.summary import bimodal_from_modes
 from pinpoint_fg.trackers.base import TrackerConfig
 from pinpoint_fg.trackers.svn import FIRST_PRIOR_SIGMA, SvnTracker
 from pinpoint_fg.trackers.svn_modes import SCALE, ModeSettings, basins, laplace_terms

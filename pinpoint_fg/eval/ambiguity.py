@@ -58,7 +58,7 @@ from factors.lie import se3_exp
 from factors.residuals import needle_image_conic
 from pinpoint_fg.eval.metrics import PoseErrors, pose_errors
 from pinpoint_fg.init import circle_poses_from_conic
-from pinpoint_fg.io.recording import Recording
+from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.stein import floor_hessians

@@ -40,7 +40,8 @@ import numpy as np
 
 from factors import residuals as res
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.recording import Recording, read_recording
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.noise import RESIDUAL_DIMS, NoiseConfig, ResidualNoise
 from pinpoint_fg.observe import observe_frame
 

@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from factors.lie import local, so3_log
+from factors.lie import so3_log
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.posterior.spread import pose_array
 
 Z_975 = 1.959963984540054
 """Standard-normal 97.5 % point: ``q95 = Z_975 · sigma`` for ``|err|`` with ``err ~ N(0, sigma^2)``."""
@@ -44,18 +45,6 @@ _AXES = ("x", "y", "z")
 
 
 # ----------------------------------------------------------------------------- validation
-
-
-def _poses(name: str, T: np.ndarray, min_batch_dims: int = 0) -> np.ndarray:
-    """``T`` as a float array of shape ``(..., 4, 4)`` with at least ``min_batch_dims`` leading axes."""
-    try:
-        T = np.asarray(T, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name} must be a numeric array of 4x4 poses ({exc})", column=name) from None
-    if T.ndim < 2 + min_batch_dims or T.shape[-2:] != (4, 4):
-        want = "(..., N, 4, 4)" if min_batch_dims else "(..., 4, 4)"
-        raise InputError(f"{name} must have shape {want}, got {T.shape}", column=name)
-    return T
 
 
 def _finite_rows(T: np.ndarray) -> np.ndarray:
@@ -96,8 +85,8 @@ def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> PoseErrors:
     Either input may also be a single (4, 4) pose (broadcast). Frames where either pose has a
     non-finite entry (e.g. no ground truth) get NaN errors instead of an exception.
     """
-    T_est = _poses("T_est", T_est)
-    T_gt = _poses("T_gt", T_gt)
+    T_est = pose_array("T_est", T_est)
+    T_gt = pose_array("T_gt", T_gt)
     try:
         shape = np.broadcast_shapes(T_est.shape, T_gt.shape)
     except ValueError:
@@ -120,116 +109,6 @@ def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> PoseErrors:
         rot_rad=np.linalg.norm(w_body, axis=-1) + nan,
         trans_axes_m=np.abs(dt) + nan[..., None],
         rot_axes_rad=np.abs(w_cam) + nan[..., None],
-    )
-
-
-# ----------------------------------------------------------------------------- weighted statistics
-
-
-def _weights(weights: np.ndarray | None, shape: tuple[int, ...], name: str = "weights") -> np.ndarray:
-    """Normalised non-negative weights of ``shape`` (uniform when ``None``); each row sums to 1."""
-    if weights is None:
-        return np.full(shape, 1.0 / shape[-1])
-    w = np.asarray(weights, dtype=float)
-    if w.shape != shape:
-        try:
-            w = np.broadcast_to(w, shape)
-        except ValueError:
-            raise InputError(f"{name} has shape {w.shape}, expected {shape}", column=name) from None
-    if not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise InputError(f"{name} must be finite and non-negative", column=name)
-    total = w.sum(axis=-1, keepdims=True)
-    if np.any(total <= 0):
-        raise InputError(f"{name}: a set of weights sums to zero", column=name)
-    return w / total
-
-
-def weighted_quantile(values: np.ndarray, weights: np.ndarray | None, q: float) -> np.ndarray:
-    """Weighted ``q``-quantile of ``values`` (..., N) along the last axis -> (...).
-
-    Definition: the inverse of the weighted empirical CDF,
-    ``Q(q) = min { x_(k) : W_k >= q · W_N }``, where ``x_(1) <= ... <= x_(N)`` are the sorted values
-    and ``W_k`` the cumulative sum of their weights (weights ``None`` = equal). For ``q = 0`` the
-    smallest value with positive weight is returned. With equal weights this is exactly numpy's
-    ``np.quantile(..., method="inverted_cdf")``: weights are divided by their maximum, so equal
-    weights become exact ones, ``W_k = k`` exactly, and the comparison ``k >= q · N`` is the one numpy
-    makes. The result is always one of the values (no interpolation).
-    """
-    v = np.asarray(values, dtype=float)
-    if v.ndim == 0 or v.shape[-1] == 0:
-        raise InputError("weighted_quantile needs at least one value along the last axis", column="values")
-    if not np.all(np.isfinite(v)):
-        raise InputError("weighted_quantile: values must be finite", column="values")
-    if not (0.0 <= float(q) <= 1.0):
-        raise InputError(f"quantile level q must lie in [0, 1], got {q}", column="q")
-    w = _weights(weights, v.shape)
-    w = w / w.max(axis=-1, keepdims=True)
-    order = np.argsort(v, axis=-1, kind="stable")
-    v_sorted = np.take_along_axis(v, order, axis=-1)
-    w_sorted = np.take_along_axis(w, order, axis=-1)
-    cum = np.cumsum(w_sorted, axis=-1)
-    target = float(q) * cum[..., -1:]
-    hit = (cum >= target) & (w_sorted > 0)
-    k = np.argmax(hit, axis=-1)
-    return np.take_along_axis(v_sorted, k[..., None], axis=-1)[..., 0]
-
-
-@dataclass(frozen=True)
-class TangentSpread:
-    """Spread of a particle set around a reference pose, in the reference's tangent space."""
-
-    q95_trans_m: np.ndarray
-    """(...) weighted 95th percentile of ``||v_i||`` (translation part of ``xi_i``), metres."""
-    q95_rot_rad: np.ndarray
-    """(...) weighted 95th percentile of ``||omega_i||`` (rotation part of ``xi_i``), radians."""
-    mean_xi: np.ndarray
-    """(..., 6) weighted mean ``sum_i w_i xi_i``, order ``[omega; v]``."""
-    cov_xi: np.ndarray
-    """(..., 6, 6) weighted covariance ``sum_i w_i (xi_i - mean)(xi_i - mean)^T`` (weights sum to 1)."""
-
-
-def tangent_spread(
-    T_ref: np.ndarray,
-    particles_T: np.ndarray,
-    weights: np.ndarray | None = None,
-    q: float = 0.95,
-) -> TangentSpread:
-    """Uncertainty of a particle set (paper §IV "Uncertainty Estimation").
-
-    ``xi_i = Log(T_ref^-1 T_i) = [omega_i; v_i]`` (GTSAM order, :func:`factors.lie.local`);
-    ``q95_trans_m`` / ``q95_rot_rad`` are the weighted ``q``-quantiles (:func:`weighted_quantile`)
-    of ``||v_i||`` and ``||omega_i||``; the covariance is the weighted (biased, normalised-weight)
-    second moment about the weighted mean, as the paper writes it.
-
-    Shapes: ``particles_T`` (F, N, 4, 4) with ``T_ref`` (F, 4, 4) or one (4, 4) for every frame;
-    a single set (N, 4, 4) with ``T_ref`` (4, 4) gives scalar quantiles. ``weights`` (F, N) or
-    (N,), ``None`` = equal; they are normalised per set.
-    """
-    P = _poses("particles_T", particles_T, min_batch_dims=1)
-    T_ref = _poses("T_ref", T_ref)
-    mismatch = f"T_ref {T_ref.shape} does not match particles_T {P.shape}"
-    if T_ref.ndim > P.ndim - 1:
-        raise InputError(mismatch, column="T_ref")
-    try:
-        batch = np.broadcast_shapes(T_ref.shape[:-2], P.shape[:-3])
-    except ValueError:
-        raise InputError(mismatch, column="T_ref") from None
-    if batch != P.shape[:-3]:
-        raise InputError(mismatch, column="T_ref")
-    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T_ref))):
-        raise InputError("tangent_spread: poses must be finite", column="particles_T")
-    w = _weights(weights, P.shape[:-2])
-    xi = local(T_ref[..., None, :, :], P)  # (..., N, 6)
-    r_rot = np.linalg.norm(xi[..., :3], axis=-1)
-    r_trans = np.linalg.norm(xi[..., 3:], axis=-1)
-    mean = np.einsum("...n,...nk->...k", w, xi)
-    d = xi - mean[..., None, :]
-    cov = np.einsum("...n,...nj,...nk->...jk", w, d, d)
-    return TangentSpread(
-        q95_trans_m=weighted_quantile(r_trans, w, q),
-        q95_rot_rad=weighted_quantile(r_rot, w, q),
-        mean_xi=mean,
-        cov_xi=cov,
     )
 
 

@@ -5,9 +5,9 @@ Per result (frame axis first):
 * **mode weights** ``(F, K)`` sorted per frame, zero-padded, NaN rows for frames without modes:
   from the result's ``modes.csv`` (:func:`pinpoint_fg.io.result.read_modes`); a result written
   before modes.csv existed has them recomputed from its particles
-  (:func:`pinpoint_fg.posterior_summary.modes_from_particles`; a single particle is one mode).
+  (:func:`pinpoint_fg.posterior.summary.modes_from_particles`; a single particle is one mode).
 * **modes verdict** per frame: the second mode weighs at least 0.1
-  (:data:`pinpoint_fg.posterior_summary.BIMODAL_MODE_WEIGHT`).
+  (:data:`pinpoint_fg.posterior.summary.BIMODAL_MODE_WEIGHT`).
 * **truth kept**: the share of frames with ground truth where some mode peak
   (``truth_kept_modes_share``), respectively some particle (``truth_kept_particles_share``), is
   within ``TRUTH_KEPT_TRANS_M`` = 2 mm AND ``TRUTH_KEPT_ROT_RAD`` = 10 deg of the truth.
@@ -27,8 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.io.result import MAX_MODES, MODES_CSV, ModeHistory, Result, read_modes
-from pinpoint_fg.posterior_summary import BIMODAL_MODE_WEIGHT, modes_from_particles
+from pinpoint_fg.io.result.reader import read_modes
+from pinpoint_fg.io.result.schema import MAX_MODES, MODES_CSV, ModeHistory, Result
+from pinpoint_fg.posterior.summary import BIMODAL_MODE_WEIGHT, modes_from_particles
 
 TRUTH_KEPT_TRANS_M = 2e-3
 """A mode / particle keeps the truth when within this translation (m) ..."""

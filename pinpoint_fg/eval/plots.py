@@ -27,7 +27,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 
-from pinpoint_fg.eval.bimodality import BimodalityVerdict, principal_plane
+from pinpoint_fg.posterior.bimodality import BimodalityVerdict, principal_plane
 
 AXIS_COLOURS = ("#1b9e77", "#d95f02", "#7570b3")
 """X (green), Y (orange), Z (purple), as in the paper."""

@@ -8,7 +8,7 @@ truth:
   (:func:`~pinpoint_fg.eval.metrics.summarize_errors`), latency median and 95th percentile;
 * uncertainty: mean predicted q95, NLL-S and interval score from the result's q95 columns;
 * bimodality, recomputed from the stored particles with the MAP and the truth
-  (:func:`~pinpoint_fg.eval.bimodality.assess_bimodality`; a set with fewer than six particles,
+  (:func:`~pinpoint_fg.posterior.bimodality.assess_bimodality`; a set with fewer than six particles,
   e.g. the MAP method's single one, is never bimodal): the raw ``bimodal_share`` (all frames
   with particles), ``truth_in_dominant_share`` (bimodal frames with truth), and — judged
   against the truth about ambiguity (:mod:`pinpoint_fg.eval.ambiguity`) — the bimodal rate on
@@ -49,13 +49,15 @@ from threadpoolctl import threadpool_limits
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
-from pinpoint_fg.eval.bimodality import assess_bimodality, systematic_resample, tangent_at_map
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
 from pinpoint_fg.eval.modes import ResultModes, modes_of_result, reference_rates, truth_kept
-from pinpoint_fg.io.recording import Recording, read_recording
-from pinpoint_fg.io.result import MODES_CSV, Result, expand_result_dirs, read_result
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
+from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.posterior.bimodality import assess_bimodality, systematic_resample, tangent_at_map
 
 #: The ablation matrix of the paper's Table III: (variant name, method, disabled switches, title).
 ABLATION_VARIANTS: tuple[tuple[str, str, tuple[str, ...], str], ...] = (

@@ -49,7 +49,7 @@ Decisions (the issue leaves them open; import and export agree on every one):
 * **Keypoints.** ``PointStamped.point.x`` = u, ``.y`` = v; ``z`` is ignored (the export writes 0).
   Non-finite coordinates are an error, not "not observed" (publish nothing instead).
 * **Poses.** ``position`` in metres, ``orientation`` (x, y, z, w) -> ``wxyz``; the quaternion must
-  be unit within :data:`~pinpoint_fg.io.recording.QUAT_NORM_TOL` and is normalised. A pose whose
+  be unit within :data:`~pinpoint_fg.io.recording.schema.QUAT_NORM_TOL` and is normalised. A pose whose
   ``header.frame_id`` is set and differs from the camera_info's (when that is set) is rejected:
   the format's poses are in the camera frame and this module does no tf lookups.
 * **Masks.** ``sensor_msgs/Image`` with encoding ``mono8`` or ``8UC1``, the camera's width and
@@ -87,14 +87,9 @@ import numpy as np
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
-from pinpoint_fg.io.recording import (
-    QUAT_NORM_TOL,
-    FrameRecord,
-    Recording,
-    RecordingInfo,
-    RecordingWriter,
-    read_recording,
-)
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import QUAT_NORM_TOL, FrameRecord, Recording, RecordingInfo
+from pinpoint_fg.io.recording.writer import RecordingWriter
 
 #: recording.json key holding what a bag import knows beyond the format (time origin, frame id).
 ROS_BAG_KEY = "ros_bag"

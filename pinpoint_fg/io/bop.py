@@ -61,7 +61,8 @@ from factors.lie import homogeneous
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
-from pinpoint_fg.io.recording import FrameRecord, RecordingInfo, RecordingWriter
+from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.writer import RecordingWriter
 
 SCENE_CAMERA = "scene_camera.json"
 SCENE_GT = "scene_gt.json"

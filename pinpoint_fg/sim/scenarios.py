@@ -110,7 +110,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from factors.lie import homogeneous, se3_inverse, so3_exp
-from pinpoint_fg.io.recording import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
 from pinpoint_fg.sim.config import SimConfig
 from pinpoint_fg.sim.kinematics import (
     KinematicErrors,
@@ -804,7 +804,7 @@ def simulate(
     with ``images`` every frame also gets a rendered camera image (:func:`render_image`).
     Same arguments, same bytes.
     """
-    from pinpoint_fg.io.recording import RecordingWriter
+    from pinpoint_fg.io.recording.writer import RecordingWriter
 
     out = Path(out)
     run, pend = _prepare(scenario, n_frames, seed, config)

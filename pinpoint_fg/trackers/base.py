@@ -14,18 +14,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from factors.geometry import NeedleModel, PinholeCamera
-from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.kinematics_check import KinematicsCheckConfig, KinematicsMonitor, MotionInput
-from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
-from pinpoint_fg.noise import NoiseConfig, format_robust
+from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
+from pinpoint_fg.noise import format_robust
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.posterior_modes import Mode
+from pinpoint_fg.posterior.modes import Mode
+from pinpoint_fg.posterior.spread import tangent_spread
 
 
 @dataclass(frozen=True)
 class Estimate:
-    """A tracker's output for one frame."""
+    """A tracker's output for one frame.
+
+    Its result-file counterpart is :class:`pinpoint_fg.io.result.schema.FrameEstimate`, made from it by
+    ``pinpoint_fg.track.to_frame_estimate``: that adds what is judged after the step (the GMM verdict, the
+    modes, the weak direction), turns ``reseeded`` into an extra column and drops ``cov_xi`` (not on disk).
+    The two stay separate types: the writer (io, below the trackers) validates rows in the on-disk names
+    (``particles_T``, ``weight``), and each tracker builds its estimate without the post-step summaries.
+    """
 
     frame: int
     """Frame index."""
@@ -93,17 +99,10 @@ def summarize(particles: np.ndarray, log_posterior: np.ndarray, weights: np.ndar
 
 
 @dataclass(frozen=True)
-class TrackerConfig:
-    """Settings common to every tracker."""
+class TrackerConfig(MeasurementModel):
+    """Settings common to every tracker: a :class:`~pinpoint_fg.likelihood.MeasurementModel` (camera, needle,
+    noise, switches, depth penalty: declared once, there) extended by the inference settings below."""
 
-    camera: PinholeCamera
-    """Camera of the recording."""
-    needle: NeedleModel
-    """Needle of the recording."""
-    noise: NoiseConfig = NoiseConfig()
-    """Residual noise (Table I defaults or a calibration file)."""
-    switches: Switches = Switches()
-    """Enabled likelihood terms."""
     particles: int = 50
     """Number of hypotheses."""
     window: int = 1
@@ -115,8 +114,8 @@ class TrackerConfig:
 
     @property
     def model(self) -> MeasurementModel:
-        """The measurement model every frame's likelihood uses."""
-        return MeasurementModel(self.camera, self.needle, self.noise, self.switches)
+        """The measurement model every frame's likelihood uses (the measurement fields alone)."""
+        return MeasurementModel(self.camera, self.needle, self.noise, self.switches, self.min_depth_m)
 
 
 class Tracker(abc.ABC):

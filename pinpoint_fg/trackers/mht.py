@@ -89,7 +89,7 @@ log-posterior ``-inf``; ``weights`` are the normalised branch weights, ``log_pos
 logarithms; ``modes`` lists every branch (pose, weight, GTSAM marginal covariance). q95 and
 ``cov_xi`` describe the whole mixture: fixed standard-normal draws split among the branches by
 weight, ``x = x_b Exp(S_b z)`` (``S_b S_b^T`` the branch's marginal), spread around the MAP exactly
-as the particle methods do (:func:`pinpoint_fg.eval.metrics.tangent_spread`); with one branch this
+as the particle methods do (:func:`pinpoint_fg.posterior.spread.tangent_spread`); with one branch this
 equals ``map``'s numbers. ``extra``: ``branches`` (live count), ``best_weight``, ``proposals``
 (screened this frame), ``admitted`` (new branches), ``recovered`` (GTSAM recoveries).
 """
@@ -102,23 +102,28 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from factors.lie import local, se3_exp
-from pinpoint_fg.eval.metrics import tangent_spread
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.posterior_modes import Mode
+from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.proposals import (
     DEFAULT_SEPARATION,
     gaussian_log_normaliser,
     laplace_log_evidence,
     mode_proposals,
-    near,
     polish_with_prior,
     rigid_map,
 )
 from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible
 from pinpoint_fg.trackers.map import MapConfig, MapSmoother, motion_model
+from pinpoint_fg.trackers.mht_branches import (
+    Branch,
+    branch_evidence,
+    history_cost,
+    is_duplicate,
+    mixture_spread,
+    select_branches,
+)
 
 
 @dataclass(frozen=True)
@@ -154,28 +159,6 @@ class MhtConfig:
             raise ValueError("need 0 <= admit_nats <= prune_nats")
 
 
-@dataclass
-class _Branch:
-    smoother: MapSmoother
-    log_w: float
-    prior_mean: np.ndarray  # window prior of the newest key (mean, covariance)
-    prior_cov: np.ndarray
-    inc: float = 0.0  # this frame's evidence increment
-    iterations: int = 1
-    history: list = field(default_factory=list)  # [(FrameLikelihood, (4, 4) pose)] of the previous frames
-
-
-def _sqrt_psd(C: np.ndarray) -> np.ndarray:
-    w, V = np.linalg.eigh(0.5 * (C + C.T))
-    return V * np.sqrt(np.maximum(w, 0.0))
-
-
-def _mahalanobis2(T: np.ndarray, centres: np.ndarray, covs: np.ndarray) -> np.ndarray:
-    """``xi^T Sigma^-1 xi`` of pose ``T`` around each centre ``(B, 4, 4)`` with covariances ``(B, 6, 6)``."""
-    xi = local(centres, np.broadcast_to(T, centres.shape))
-    return np.einsum("bi,bi->b", xi, np.linalg.solve(covs, xi[..., None])[..., 0])
-
-
 class MhtTracker(Tracker):
     """A bank of up to K single-mode GTSAM fixed-lag smoothers weighted by Laplace evidence (module docstring)."""
 
@@ -189,7 +172,7 @@ class MhtTracker(Tracker):
         self._model = config.model
         self._weak_cov = np.diag(np.square(mht_config.map.prior_sigma))
         self._z = np.random.default_rng([config.seed, 95]).standard_normal((mht_config.map.q95_samples, 6))
-        self.branches: list[_Branch] = []
+        self.branches: list[Branch] = []
         self._key = -1
 
     @property
@@ -209,20 +192,9 @@ class MhtTracker(Tracker):
         return out
 
     # ------------------------------------------------------------------ pieces
-    def _evidence(self, lik: FrameLikelihood, T: np.ndarray, cov: np.ndarray, mean: np.ndarray,
-                  prior_cov: np.ndarray) -> float:
-        """Laplace log-evidence increment of a smoother's estimate ``T`` with marginal ``cov`` (module docstring)."""
-        r = local(mean, T[None])[0]
-        E = float(lik.nll(T)[0]) + 0.5 * float(r @ np.linalg.solve(prior_cov, r))
-        try:
-            H = np.linalg.inv(cov)
-        except np.linalg.LinAlgError:
-            return -np.inf
-        return float(laplace_log_evidence(E, H) + gaussian_log_normaliser(prior_cov))
-
     def _new_branch(self, lik: FrameLikelihood, key: int, obs: Observation, T_init: np.ndarray,
                     mean: np.ndarray, prior_cov: np.ndarray, log_w0: float,
-                    frame_factors: bool = True) -> tuple[_Branch | None, int]:
+                    frame_factors: bool = True) -> tuple[Branch | None, int]:
         """A new smoother at ``key``: the frame's factors and the prior ``N(mean, prior_cov)``; None if GTSAM raises."""
         sm = MapSmoother(self.mht.map, self.config.window)
         noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (prior_cov + prior_cov.T))
@@ -233,10 +205,10 @@ class MhtTracker(Tracker):
             return None, 1
         T = sm.estimate(key)
         cov, fell_back, _ = sm.finish(key, obs.frame, obs.t_s, T)
-        inc = self._evidence(lik, T, cov, mean, prior_cov)
-        return _Branch(sm, log_w0 + inc, mean, prior_cov, inc, max(int(result.getIterations()), 1)), int(fell_back)
+        inc = branch_evidence(lik, T, cov, mean, prior_cov)
+        return Branch(sm, log_w0 + inc, mean, prior_cov, inc, max(int(result.getIterations()), 1)), int(fell_back)
 
-    def _seed(self, lik: FrameLikelihood, key: int, obs: Observation) -> tuple[list[_Branch], int]:
+    def _seed(self, lik: FrameLikelihood, key: int, obs: Observation) -> tuple[list[Branch], int]:
         """Branches from the frame alone (first frame, re-detection): the best K seeding modes, weak prior."""
         _, modes = seed_particles(lik, max(self.config.particles, InitConfig().max_modes), self.rng)
         out, rec = [], 0
@@ -252,55 +224,13 @@ class MhtTracker(Tracker):
             rec += r
         return out, rec
 
-    def _duplicate(self, T: np.ndarray, kept: list[_Branch]) -> bool:
-        """True when ``T`` is the same mode as one of ``kept`` (absolute separation or Mahalanobis distance)."""
-        if not kept:
-            return False
-        centres = np.stack([k.smoother.newest for k in kept])
-        if near(T, centres, self.mht.separation).any():
-            return True
-        covs = np.stack([k.smoother.cov for k in kept])
-        return bool(np.any(_mahalanobis2(T, centres, covs) < self.mht.merge_mahalanobis2))
+    def _select(self, branches: list[Branch]) -> list[Branch]:
+        """:func:`~pinpoint_fg.trackers.mht_branches.select_branches` with this bank's settings."""
+        m = self.mht
+        return select_branches(branches, m.prune_nats, m.max_branches, m.separation, m.merge_mahalanobis2)
 
-    def _select(self, branches: list[_Branch]) -> list[_Branch]:
-        """Best first; merge duplicates (keep the better); prune; keep K; shift log-weights so the best is 0."""
-        live = sorted([b for b in branches if np.isfinite(b.log_w)], key=lambda b: -b.log_w)
-        if not live:  # nothing finite: keep the first as is
-            live = branches[:1]
-            live[0].log_w = 0.0
-        best = live[0].log_w
-        kept: list[_Branch] = []
-        for b in live:
-            if b.log_w < best - self.mht.prune_nats or len(kept) >= self.mht.max_branches:
-                continue
-            if self._duplicate(b.smoother.newest, kept):
-                continue
-            kept.append(b)
-        for b in kept:
-            b.log_w -= best
-        return kept
-
-    def _history_cost(self, parent: _Branch, G: np.ndarray) -> tuple[float, list]:
-        """What the parent's past frames say against the proposal's history ``G x_j``, and that history.
-
-        Each past pose carried by ``G`` is polished on its own frame (a few Gauss-Newton steps);
-        the cost is ``sum_j nll_j(polished) - nll_j(x_j polished alike)`` (the evidence of the mode history "this
-        proposal all along" relative to the parent's, per frame, motion consistency assumed equal).
-        """
-        cost, hist = 0.0, []
-        for lik_j, T_j in parent.history:
-            if lik_j.dim == 0:
-                hist.append((lik_j, G @ T_j))
-                continue
-            # both polished alike on the frame alone: the parent's pose is a filtered estimate, not the
-            # frame's own optimum, and comparing against it unpolished would favour every proposal
-            Tq, E, _ = polish_with_prior(lik_j, np.stack([T_j, G @ T_j]), iters=3)
-            cost += float(E[1] - E[0])
-            hist.append((lik_j, Tq[1]))
-        return cost, hist
-
-    def _propose(self, lik: FrameLikelihood, key: int, obs: Observation, branches: list[_Branch],
-                 prev_w: list[float]) -> tuple[list[_Branch], int, int, int]:
+    def _propose(self, lik: FrameLikelihood, key: int, obs: Observation, branches: list[Branch],
+                 prev_w: list[float]) -> tuple[list[Branch], int, int, int]:
         """Proposals of every branch: screen, let the best compete for the K slots, build their smoothers."""
         held = np.stack([b.smoother.newest for b in branches])
         best = max(b.log_w for b in branches)
@@ -325,10 +255,10 @@ class MhtTracker(Tracker):
             Tp, E, H = polish_with_prior(lik, P, means, info, self.mht.polish_iters)
             score = w0 + laplace_log_evidence(E, H) + gaussian_log_normaliser(b.prior_cov)
             for i in np.flatnonzero(np.isfinite(score) & (score >= best - self.mht.admit_nats)):
-                if self._duplicate(Tp[i], branches):
+                if is_duplicate(Tp[i], branches, self.mht.separation, self.mht.merge_mahalanobis2):
                     continue
                 if self.mht.transport_prior:
-                    hist_cost, hist = self._history_cost(b, rigid_map(T_b, Tp[i]))
+                    hist_cost, hist = history_cost(b, rigid_map(T_b, Tp[i]))
                 else:  # the parent's own history, unchanged: nothing to charge
                     hist_cost, hist = 0.0, list(b.history)
                 if score[i] - hist_cost >= best - self.mht.admit_nats:
@@ -341,7 +271,7 @@ class MhtTracker(Tracker):
             rank = sum(s > score for s in slots)
             if rank >= self.mht.max_branches:
                 break
-            if self._duplicate(T, branches + out):
+            if is_duplicate(T, branches + out, self.mht.separation, self.mht.merge_mahalanobis2):
                 continue
             nb, r = self._new_branch(lik, key, obs, T, mean, pc, w0)
             rec += r
@@ -353,21 +283,6 @@ class MhtTracker(Tracker):
             slots.sort(reverse=True)
             admitted += 1
         return out, n_prop, admitted, rec
-
-    def _spread(self, branches: list[_Branch], w: np.ndarray) -> tuple[float, float, np.ndarray]:
-        """q95 translation, q95 rotation and covariance of the branch mixture around the best branch."""
-        M = self._z.shape[0]
-        counts = np.floor(w * M).astype(int)
-        counts[np.argsort(-(w * M - counts))[: M - counts.sum()]] += 1
-        samples, start = [], 0
-        for b, c in zip(branches, counts, strict=True):
-            if c == 0:
-                continue
-            xi = self._z[start:start + c] @ _sqrt_psd(b.smoother.cov).T
-            samples.append(b.smoother.newest @ se3_exp(xi))
-            start += c
-        sp = tangent_spread(branches[0].smoother.newest, np.concatenate(samples), None)
-        return float(sp.q95_trans_m), float(sp.q95_rot_rad), np.asarray(sp.cov_xi)
 
     # ------------------------------------------------------------------ step
     def step(self, observation: Observation) -> Estimate:
@@ -393,7 +308,7 @@ class MhtTracker(Tracker):
                 T = b.smoother.estimate(key)
                 cov, fell_back, _ = b.smoother.finish(key, observation.frame, observation.t_s, T)
                 recovered += r + int(fell_back)
-                b.inc = self._evidence(lik, T, cov, mean, pc)
+                b.inc = branch_evidence(lik, T, cov, mean, pc)
                 b.log_w += b.inc
                 b.prior_mean, b.prior_cov = mean, pc
                 b.iterations = max(int(result.getIterations()), 1)
@@ -417,7 +332,7 @@ class MhtTracker(Tracker):
         lw = np.array([b.log_w for b in branches])
         w = np.exp(lw - lw.max())
         w /= w.sum()
-        q_t, q_r, cov_mix = self._spread(branches, w)
+        q_t, q_r, cov_mix = mixture_spread(branches, w, self._z)
         K = self.mht.max_branches
         top = branches[0].smoother
         best = top.newest

@@ -29,7 +29,7 @@ from tqdm import tqdm
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.report import ABLATION_VARIANTS, evaluate_results
 from pinpoint_fg.io.outdir import prepare_output_dir
-from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.recording.reader import read_recording
 
 
 @dataclass(frozen=True)

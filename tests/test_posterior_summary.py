@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from factors.lie import retract, se3_exp
-from pinpoint_fg.eval.metrics import tangent_spread
-from pinpoint_fg.posterior_modes import Mode
-from pinpoint_fg.posterior_summary import (
+from pinpoint_fg.posterior.modes import Mode
+from pinpoint_fg.posterior.spread import tangent_spread
+from pinpoint_fg.posterior.summary import (
     BIMODAL_MODE_WEIGHT,
     WEAK_UNITS,
     bimodal_from_modes,

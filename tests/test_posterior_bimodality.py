@@ -1,4 +1,4 @@
-"""The bimodality rule of pinpoint_fg.eval.bimodality on constructed particle sets."""
+"""The bimodality rule of pinpoint_fg.posterior.bimodality on constructed particle sets."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from factors.lie import retract, se3_exp
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.eval.bimodality import (
+from pinpoint_fg.posterior.bimodality import (
     ROT_UNIT_RAD,
     TRANS_UNIT_M,
     ashman_d,

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import pytest
 
-import pinpoint_fg.eval.ablate as ablate_mod
+import pinpoint_fg.experiments.ablate as ablate_mod
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.eval.ablate import AblationJob, ablate, ablation_jobs, run_jobs
 from pinpoint_fg.eval.report import ABLATION_VARIANTS
-from pinpoint_fg.io.result import read_result
+from pinpoint_fg.experiments.ablate import AblationJob, ablate, ablation_jobs, run_jobs
+from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.sim.scenarios import simulate
 
 SMALL = tuple(v for v in ABLATION_VARIANTS if v[0] in ("full", "no-dense", "svgd"))

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.observe import observe_frame
 
 
@@ -156,7 +156,7 @@ def latency_tables(runs: dict[str, Path], frames: int | None, grid_run: Path | N
                 lines.append(f"{n:4d} {L:2d} {s['median_ms_all']:7.1f} {s['p95_ms_all']:7.1f} "
                              f"{s['median_ms_mask']:8.1f} {s['cpu_median_ms_all']:7.1f} {row['ratio_vs_L1']:6.2f}")
     if track_out is not None and grid_run is not None:
-        from pinpoint_fg.io.result import read_result
+        from pinpoint_fg.io.result.reader import read_result
         from pinpoint_fg.track import track_recording
 
         t0 = time.perf_counter()

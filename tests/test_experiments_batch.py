@@ -1,4 +1,4 @@
-"""pinpoint_fg.batch: many runs on Dask give the results of single ``track`` runs; failures stay per run."""
+"""pinpoint_fg.experiments.batch: many runs on Dask give the results of single ``track`` runs; failures stay per run."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pinpoint_fg.batch import BatchError, batch_track, result_dir_names, run_batch
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.result import expand_result_dirs
+from pinpoint_fg.experiments.batch import BatchError, batch_track, result_dir_names, run_batch
+from pinpoint_fg.io.result.reader import expand_result_dirs
 from pinpoint_fg.sim.scenarios import simulate
 from pinpoint_fg.track import track_recording
 

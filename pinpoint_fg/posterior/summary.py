@@ -5,9 +5,9 @@ the posterior and PF particles are weighted samples, so a mode is a cluster of p
 weight is its share of the particle weight (equal weights for SVN/SVGD, the PF weights for the
 PF), its peak the cluster's highest-log-posterior particle, its covariance the weighted tangent
 covariance of its members in GTSAM's chart at the peak
-(:func:`pinpoint_fg.eval.metrics.tangent_spread`; about the members' weighted mean, [omega; v],
+(:func:`pinpoint_fg.posterior.spread.tangent_spread`; about the members' weighted mean, [omega; v],
 rad / m). Clustering, all in the scaled tangent chart at the MAP particle
-(:func:`pinpoint_fg.eval.bimodality.tangent_at_map`: omega / 5 deg, v / 1 mm, the S of svn.py and
+(:func:`pinpoint_fg.posterior.bimodality.tangent_at_map`: omega / 5 deg, v / 1 mm, the S of svn.py and
 of the GMM verdict):
 
 1. Identical particles (the PF's resampling copies) become one point (weights summed).
@@ -57,9 +57,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.spatial import cKDTree
 
-from pinpoint_fg.eval.bimodality import systematic_resample, tangent_at_map
-from pinpoint_fg.eval.metrics import tangent_spread
-from pinpoint_fg.posterior_modes import Mode
+from pinpoint_fg.posterior.bimodality import systematic_resample, tangent_at_map
+from pinpoint_fg.posterior.modes import Mode
+from pinpoint_fg.posterior.spread import tangent_spread
 
 K_MAX = 4
 """Most modes reported per frame."""

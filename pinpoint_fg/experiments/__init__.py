@@ -1,0 +1,1 @@
+"""Experiments that run tracking: demo, benchmark, ablation, batch (Dask), lock-step latency (above track)."""

@@ -1,0 +1,100 @@
+"""``pinpoint-fg benchmark``: every scenario x every method on fixed seeds, then the latency benchmark.
+
+Prints accuracy, spread, bimodality and latency side by side, and latency *ratios* against the
+baselines measured in the same run (machines are noisy; ratios are what transfer).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pinpoint_fg.experiments.jobs import TrackJob, run_tracking, simulate_runs
+
+#: Every simulated scenario; a scenario's recording may ask for switches off (``suggested_disable``,
+#: e.g. ``symmetric``: no grasp factors), which demo and benchmark honour.
+BENCH_SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration", "symmetric", "drive", "kinfault",
+                   "snapshots")
+BENCH_METHODS = ("svn", "svgd", "pf", "map", "mht")
+
+
+def _finite_or_none(x: object) -> object:
+    """JSON has no NaN: non-finite floats become null (e.g. mask statistics of a run without masks)."""
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
+def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed: int = 1, jobs: int = 1,
+                  grid_frames: int | None = None, overwrite: bool = False) -> Path:
+    """Every scenario x method on fixed seeds; prints accuracy, spread, bimodality, latency and latency ratios.
+
+    Runs sequentially by default (``jobs=1``) so the per-frame latencies are not inflated by the
+    other runs sharing the cores. Then the latency benchmark (:func:`pinpoint_fg.experiments.latency.latency_tables`):
+    SVN, PF and MAP in lock-step per scenario, SVN's cost over N and L on the normal run
+    (``grid_frames`` frames, default all) and ``track``'s wall time against its step latencies;
+    written to ``latency.json``, ``latency.txt`` and ``latency_vs_n_l.png``. ``out`` must be new or
+    empty unless ``overwrite``.
+    """
+    from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.io.outdir import prepare_output_dir
+    from pinpoint_fg.track import suggested_disable
+
+    out = prepare_output_dir(out, overwrite, "benchmark output")
+    runs = simulate_runs(BENCH_SCENARIOS, frames, seed, out)
+    disable = {sc: suggested_disable(runs[sc]) for sc in BENCH_SCENARIOS}  # one read per run, not per method
+    jobs_list = [TrackJob(str(runs[sc]), m, str(out / "results" / sc / m), disable=disable[sc])
+                 for sc in BENCH_SCENARIOS for m in BENCH_METHODS]
+    wall = run_tracking(jobs_list, jobs, "benchmark tracking")
+    report = evaluate_results([j.out for j in jobs_list], out=out / "report")
+    rows = []
+    for job, ev in zip(jobs_list, report.evaluations, strict=True):
+        lat = np.asarray(ev.result.latency_ms, dtype=float)
+        rows.append({**ev.row, "scenario": Path(job.run).name.rsplit("-", 1)[0], "method": job.method,
+                     "latency_median_ms": float(np.median(lat)), "latency_p95_ms": float(np.percentile(lat, 95)),
+                     "wall_s": wall[job.out]})
+    lines = ["scenario     method  trans mm  rot deg  q95 mm  q95 deg  bimodal  ambig.  x floor t/r   "
+             "median ms  p95 ms  median vs pf  vs map"]
+    by = {(r["scenario"], r["method"]): r for r in rows}
+    for r in rows:
+        pf, mp = by.get((r["scenario"], "pf")), by.get((r["scenario"], "map"))
+        ratio_pf = r["latency_median_ms"] / pf["latency_median_ms"] if pf else float("nan")
+        ratio_map = r["latency_median_ms"] / mp["latency_median_ms"] if mp else float("nan")
+        lines.append(
+            f"{r['scenario']:<12} {r['method']:<6} {r['trans_mean_mm']:8.2f} {r['rot_mean_deg']:8.1f} "
+            f"{r['trans_q95_mm']:7.2f} {r['rot_q95_deg']:8.1f} {100 * r['bimodal_share']:7.0f}% "
+            f"{100 * r['bimodal_ambiguous_rate']:6.0f}% "
+            f"{r['trans_floor_multiple']:5.1f}/{r['rot_floor_multiple']:<5.1f} "
+            f"{r['latency_median_ms']:10.1f} {r['latency_p95_ms']:7.1f} {ratio_pf:13.2f} {ratio_map:7.2f}"
+        )
+    text = "\n".join(lines)
+    print(text)
+    path = out / "benchmark.csv"
+    keys = list(rows[0].keys())
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    (out / "benchmark.txt").write_text(text + "\n")
+    print(f"\nwrote {path} and {out / 'report'}")
+
+    from pinpoint_fg.experiments.latency import latency_tables, plot_grid
+
+    print("\n[benchmark] latency (lock-step, one thread)")
+    env = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    data, lat_text = latency_tables(runs, frames, runs["normal"], grid_frames, track_out=out / "track-svn")
+    print(lat_text)
+    data["command_frames"], data["seed"], data["blas_threads_env"] = frames, seed, env
+    (out / "latency.json").write_text(json.dumps(_finite_or_none(data), indent=1) + "\n")
+    (out / "latency.txt").write_text(lat_text + "\n")
+    plot_grid(data["grid"], out / "latency_vs_n_l.png")
+    print(f"\nwrote {out / 'latency.json'}, {out / 'latency.txt'} and {out / 'latency_vs_n_l.png'}")
+    return path

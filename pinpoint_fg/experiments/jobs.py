@@ -1,0 +1,79 @@
+"""Tracking jobs of the experiments: simulate a set of runs, track many runs in worker processes.
+
+Workers receive only paths and strings (GTSAM objects cannot be pickled) and build everything
+themselves.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+
+@dataclass(frozen=True)
+class TrackJob:
+    """One tracking run for a worker process (paths and strings only)."""
+
+    run: str
+    """Recording directory."""
+    method: str
+    """svn, svgd, pf, map or mht."""
+    out: str
+    """Result directory."""
+    seed: int = 0
+    """Tracker seed."""
+    disable: tuple[str, ...] = ()
+    """Likelihood switches turned off (the recording's ``suggested_disable``)."""
+
+
+def _track(job: TrackJob) -> tuple[str, float]:
+    from pinpoint_fg.track import track_recording
+
+    t0 = time.perf_counter()
+    # job.out lies under the demo's/benchmark's OUT, which run_demo/run_benchmark checked (overwrite or empty)
+    track_recording(job.run, job.method, job.out, seed=job.seed, disable=job.disable, progress=False,
+                    overwrite=True)
+    return job.out, time.perf_counter() - t0
+
+
+def run_tracking(jobs: list[TrackJob], workers: int, desc: str = "tracking") -> dict[str, float]:
+    """Run tracking jobs in ``workers`` processes with a progress bar; returns wall seconds per result."""
+    show = sys.stderr.isatty()
+    seconds: dict[str, float] = {}
+    if workers <= 1:
+        for job in tqdm(jobs, desc=desc, disable=not show):
+            out, dt = _track(job)
+            seconds[out] = dt
+        return seconds
+    # one BLAS thread per worker: the workers already use every core
+    env = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    for k in env:
+        os.environ[k] = "1"
+    try:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = [pool.submit(_track, job) for job in jobs]
+            for fut in tqdm(as_completed(futures), total=len(futures), desc=desc, disable=not show):
+                out, dt = fut.result()
+                seconds[out] = dt
+    finally:
+        for k, v in env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return seconds
+
+
+def simulate_runs(scenarios: tuple[str, ...], frames: int, seed: int, root: Path) -> dict[str, Path]:
+    from pinpoint_fg.sim.scenarios import simulate
+
+    runs = {}
+    for sc in scenarios:
+        runs[sc] = simulate(sc, n_frames=frames, seed=seed, out=root / "runs" / f"{sc}-{seed:02d}")
+    return runs

@@ -1,0 +1,57 @@
+"""Reading a recorded run: :func:`read_recording` (validated, or one ``InputError``) and its text summary."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+from pinpoint_fg.io.recording.schema import OCCLUSION_LABELS, Recording
+from pinpoint_fg.io.recording.validator import validate_run
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read and validate a run directory; raise the first :class:`InputError` found."""
+    recording, errors = validate_run(path)
+    if errors:
+        raise errors[0]
+    assert recording is not None
+    return recording
+
+
+def summarize_recording(rec: Recording) -> str:
+    """A short human-readable summary: name, frames, duration, rates, and what each frame carries."""
+    info, frames = rec.info, rec.frames
+    n = len(frames)
+    cam = info.camera
+    lines = [f"run {info.name!r} ({rec.root})"]
+    if n == 0:
+        lines.append("  frames       0")
+    else:
+        duration = frames[-1].t_s - frames[0].t_s
+        measured = f", {(n - 1) / duration:.3f} Hz measured" if n > 1 and duration > 0 else ""
+        lines.append(
+            f"  frames       {n} (index {frames[0].frame}..{frames[-1].frame}), duration {duration:.3f} s, "
+            f"{info.frame_rate_hz:g} Hz declared{measured}"
+        )
+    lines.append(
+        f"  camera       {cam.width}x{cam.height} px, fx {cam.fx:g}, fy {cam.fy:g}, "
+        f"distortion {'yes' if cam.has_distortion else 'none'}"
+    )
+    lines.append(
+        f"  needle       radius {info.needle.radius_m * 1e3:g} mm, arc {info.needle.tail_angle_rad:.4g}.."
+        f"{info.needle.tip_angle_rad:.4g} rad, grasp at {info.needle.grasp_angle_rad:.4g} rad"
+    )
+
+    def share(count: int) -> str:
+        return f"{count:6d}  ({100.0 * count / n:5.1f} %)" if n else f"{count:6d}"
+
+    lines.append(f"  tip          {share(sum(f.tip_px is not None for f in frames))}")
+    lines.append(f"  tail         {share(sum(f.tail_px is not None for f in frames))}")
+    lines.append(f"  mask         {share(sum(f.mask is not None for f in frames))}")
+    lines.append(f"  kinematics   {share(sum(f.cam_T_grasper is not None for f in frames))}")
+    lines.append(f"  ground truth {share(sum(f.cam_T_needle_gt is not None for f in frames))}")
+    lines.append(f"  image        {share(sum(f.image is not None for f in frames))}")
+    occ = Counter(f.occlusion for f in frames)
+    occ_text = ", ".join(f"{label} {occ.get(label, 0)}" for label in OCCLUSION_LABELS)
+    lines.append(f"  occlusion    {occ_text}, unlabelled {occ.get(None, 0)}")
+    return "\n".join(lines)

@@ -1,0 +1,371 @@
+"""Reading a tracking result back: :func:`read_result` (estimates, smoothed poses, particles) and :func:`read_modes`.
+
+Every problem raises :class:`~pinpoint_fg.errors.InputError` naming the file, the 1-based data row and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from factors.geometry import pose_from_xyz_quat
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, json_shown, shown
+from pinpoint_fg.io.result.particles import read_journal, read_npz
+from pinpoint_fg.io.result.schema import (
+    COV_COLUMNS,
+    COV_INDICES,
+    ESTIMATE_COLUMNS,
+    ESTIMATES_CSV,
+    MAX_MODES,
+    MODE_COLUMNS,
+    MODE_WEIGHT_SUM_TOL,
+    MODES_CSV,
+    PARTICLES_JOURNAL,
+    PARTICLES_NPZ,
+    POSE_COLUMNS,
+    RESULT_FORMAT,
+    RESULT_JSON,
+    RESULT_VERSION,
+    SMOOTHED_COLUMNS,
+    SMOOTHED_CSV,
+    ModeHistory,
+    ParticleHistory,
+    Result,
+)
+
+_DECIMAL = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+_NAN = re.compile(r"[+-]?nan", re.IGNORECASE)
+_INTEGER = re.compile(r"\d+")
+
+
+def _read_info(root: Path) -> dict:
+    path = root / RESULT_JSON
+    doc = load_json(path, missing="file not found (a result needs result.json)")
+    if not isinstance(doc, dict):
+        raise InputError("the top level must be a JSON object", file=path)
+    types: dict[str, tuple[type, ...]] = {
+        "format": (str,), "version": (int,), "method": (str,), "settings": (dict,), "recording_name": (str,),
+        "recording_path": (str, type(None)), "library_version": (str,), "weighted": (bool,),
+        "smoothed": (bool,), "complete": (bool,),
+    }
+    for key, allowed in types.items():
+        if key not in doc:
+            raise InputError("missing required key", file=path, column=key)
+        v = doc[key]
+        if not isinstance(v, allowed) or (bool not in allowed and isinstance(v, bool)):
+            names = " or ".join("null" if t is type(None) else t.__name__ for t in allowed)
+            raise InputError(f"must be {names}, got {json_shown(v)}", file=path, column=key)
+    if doc["format"] != RESULT_FORMAT:
+        raise InputError(f"must be {RESULT_FORMAT!r}, got {json_shown(doc['format'])}", file=path, column="format")
+    if doc["version"] != RESULT_VERSION:
+        raise InputError(
+            f"unsupported version {doc['version']} (this reader knows {RESULT_VERSION})",
+            file=path,
+            column="version",
+        )
+    return doc
+
+
+def _read_csv_rows(
+    path: Path, required: tuple[str, ...], complete: bool
+) -> tuple[list[str], list[list[str]]]:
+    """Header and data rows (blank lines skipped). For an incomplete result a torn last line is dropped."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text: {exc.reason} at byte {exc.start}", file=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror or exc}", file=path) from None
+    if not complete and text and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]  # the writer was stopped mid-line: drop the partial row
+    try:
+        rows = [r for r in csv.reader(io.StringIO(text, newline="")) if r and any(c.strip() for c in r)]
+    except csv.Error as exc:
+        raise InputError(f"malformed CSV: {exc}", file=path) from None
+    if not rows:
+        raise InputError("empty file: no header row", file=path)
+    header = [c.strip() for c in rows[0]]
+    seen: set[str] = set()
+    for c in header:
+        if c in seen:
+            raise InputError(f"header: duplicate column {c!r}", file=path, column=c)
+        seen.add(c)
+    for c in required:
+        if c not in seen:
+            raise InputError("header: required column missing", file=path, column=c)
+    for r, cells in enumerate(rows[1:], start=1):
+        if len(cells) != len(header):
+            raise InputError(f"has {len(cells)} cells but the header has {len(header)}", file=path, row=r)
+    return header, [[c.strip() for c in cells] for cells in rows[1:]]
+
+
+def _num(path: Path, r: int, column: str, cell: str, allow_nan: bool) -> float:
+    """A numeric cell: finite (what the writer writes), or NaN/empty where ``allow_nan``."""
+    if _DECIMAL.fullmatch(cell):
+        x = float(cell)
+        if math.isfinite(x):
+            return x
+        raise InputError(f"number {shown(cell)} overflows to infinity", file=path, row=r, column=column)
+    if allow_nan and (_NAN.fullmatch(cell) or cell == ""):
+        return math.nan
+    what = "number" if allow_nan else "finite number"
+    raise InputError(f"not a {what}: {shown(cell)}", file=path, row=r, column=column)
+
+
+def _int(path: Path, r: int, column: str, cell: str) -> int:
+    """A non-negative integer cell that fits int64 (frame indices, iterations)."""
+    if not _INTEGER.fullmatch(cell):
+        raise InputError(f"not a non-negative integer: {shown(cell)}", file=path, row=r, column=column)
+    if len(cell.lstrip("0")) > 19 or int(cell) > MAX_FRAME_INDEX:
+        raise InputError(f"{shown(cell)} is beyond int64 (at most {MAX_FRAME_INDEX})", file=path, row=r,
+                         column=column)
+    return int(cell)
+
+
+def _parse_frames_and_poses(
+    path: Path, header: list[str], rows: list[list[str]]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """frame ``(F,)``, t_s ``(F,)`` and poses ``(F, 4, 4)`` of a result CSV, validated."""
+    idx = {c: i for i, c in enumerate(header)}
+    F = len(rows)
+    frames = np.zeros(F, dtype=np.int64)
+    t_s = np.zeros(F)
+    vals = np.zeros((F, 7))
+    prev: int | None = None
+    for r, cells in enumerate(rows, start=1):
+        frames[r - 1] = _int(path, r, "frame", cells[idx["frame"]])
+        if prev is not None and frames[r - 1] <= prev:
+            raise InputError(
+                f"frame {frames[r - 1]} is not greater than the previous row's frame {prev}",
+                file=path, row=r, column="frame",
+            )
+        prev = int(frames[r - 1])
+        t_s[r - 1] = _num(path, r, "t_s", cells[idx["t_s"]], allow_nan=False)
+        for j, c in enumerate(POSE_COLUMNS):
+            vals[r - 1, j] = _num(path, r, c, cells[idx[c]], allow_nan=False)
+        q = vals[r - 1, 3:]
+        # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
+        norm = float(np.sqrt(np.sum(np.square(np.clip(q, -2.0, 2.0)))))
+        if abs(norm - 1.0) > QUAT_NORM_TOL:
+            raise InputError(
+                f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}{'+' if norm >= 2 else ''}; "
+                f"it must be 1 within {QUAT_NORM_TOL:g} "
+                f"(frame {frames[r - 1]})",
+                file=path, row=r, column="qw",
+            )
+    poses = pose_from_xyz_quat(vals[:, :3], vals[:, 3:]) if F else np.zeros((0, 4, 4))
+    return frames, t_s, poses
+
+
+def expand_result_dirs(paths: Iterable[str | Path]) -> list[Path]:
+    """Result directories named by ``paths``: a result directory itself, or a directory of results.
+
+    A path holding ``result.json`` is a result. A directory without one whose immediate
+    sub-directories hold ``result.json`` (the output of ``pinpoint-fg batch``) stands for those
+    sub-directories, in name order. Anything else is passed through unchanged, so
+    :func:`read_result` reports it. Order is kept and duplicates are dropped.
+    """
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir() and not (p / RESULT_JSON).exists():
+            subs = sorted(d for d in p.iterdir() if d.is_dir() and (d / RESULT_JSON).is_file())
+            out.extend(subs or [p])
+        else:
+            out.append(p)
+    seen: set[Path] = set()
+    unique = []
+    for p in out:
+        if p.resolve() not in seen:
+            seen.add(p.resolve())
+            unique.append(p)
+    return unique
+
+
+def read_result(out_dir: str | Path) -> Result:
+    """Read and validate a result directory; bad content raises :class:`InputError` (file, row, column).
+
+    Works on a result whose writer never closed (crash): every frame whose estimates row was
+    written is returned (particles from the journal when it is ahead of particles.npz).
+    """
+    root = Path(out_dir)
+    try:
+        is_dir = root.is_dir()
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise InputError(f"cannot be used as a result directory: {why}", file=root) from None
+    if not is_dir:
+        raise InputError("not a directory (a result is a directory with result.json)", file=root)
+    info = _read_info(root)
+    complete = info["complete"]
+    weighted = info["weighted"]
+
+    est_path = root / ESTIMATES_CSV
+    extra: dict[str, np.ndarray] = {}
+    if est_path.exists():
+        header, rows = _read_csv_rows(est_path, ESTIMATE_COLUMNS, complete)
+    elif complete:
+        raise InputError("file not found", file=est_path)
+    else:
+        header, rows = list(ESTIMATE_COLUMNS), []
+    idx = {c: i for i, c in enumerate(header)}
+    frame, t_s, poses = _parse_frames_and_poses(est_path, header, rows)
+    F = len(rows)
+    q95_t, q95_r, lat = np.zeros(F), np.zeros(F), np.zeros(F)
+    bimodal = np.zeros(F, dtype=bool)
+    iters = np.zeros(F, dtype=np.int64)
+    for r, cells in enumerate(rows, start=1):
+        q95_t[r - 1] = _num(est_path, r, "q95_trans_m", cells[idx["q95_trans_m"]], allow_nan=True)
+        q95_r[r - 1] = _num(est_path, r, "q95_rot_rad", cells[idx["q95_rot_rad"]], allow_nan=True)
+        lat[r - 1] = _num(est_path, r, "latency_ms", cells[idx["latency_ms"]], allow_nan=True)
+        b = cells[idx["bimodal"]]
+        if b not in ("0", "1"):
+            raise InputError(f"must be 0 or 1, got {shown(b)}", file=est_path, row=r, column="bimodal")
+        bimodal[r - 1] = b == "1"
+        iters[r - 1] = _int(est_path, r, "iterations", cells[idx["iterations"]])
+    for c in header:
+        if c in ESTIMATE_COLUMNS:
+            continue
+        cells = [row[idx[c]] for row in rows]
+        if all(_DECIMAL.fullmatch(x) or _NAN.fullmatch(x) or x == "" for x in cells):
+            values = np.array([float(x) if x else math.nan for x in cells])
+            if not np.any(np.isinf(values)):  # the writer never writes inf: such a column is not ours
+                extra[c] = values
+        # a non-numeric extra column is allowed and ignored
+
+    smoothed = None
+    if info["smoothed"]:
+        sm_path = root / SMOOTHED_CSV
+        if sm_path.exists():
+            sh, srows = _read_csv_rows(sm_path, SMOOTHED_COLUMNS, complete)
+            sf, _, sT = _parse_frames_and_poses(sm_path, sh, srows)
+            smoothed = (sf, sT)
+        elif complete:
+            raise InputError("file not found (result.json says smoothed)", file=sm_path)
+        else:
+            smoothed = (np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
+
+    npz_path, journal_path = root / PARTICLES_NPZ, root / PARTICLES_JOURNAL
+    particles = read_npz(npz_path, weighted) if npz_path.exists() else None
+    src = npz_path
+    if journal_path.exists():
+        journal = read_journal(journal_path, weighted)
+        if journal is not None and (particles is None or len(journal.frame) > len(particles.frame)):
+            particles, src = journal, journal_path
+    if particles is None and F > 0 and complete:
+        raise InputError("file not found", file=npz_path)
+    if particles is not None:
+        P = len(particles.frame)
+        if P > F:  # particles of a frame whose rows were not written before a crash
+            if complete:
+                msg = f"{P} particle frames but estimates.csv has {F} rows"
+                raise InputError(msg, file=src, column="frame")
+            particles = ParticleHistory(particles.frame[:F], particles.cam_T_needle[:F],
+                                        particles.log_posterior[:F],
+                                        None if particles.weight is None else particles.weight[:F])
+            P = F
+        if complete and P != F:
+            raise InputError(f"{P} particle frames but estimates.csv has {F} rows", file=src, column="frame")
+        mismatch = np.nonzero(particles.frame != frame[:P])[0]
+        if mismatch.size:
+            r = int(mismatch[0]) + 1
+            raise InputError(
+                f"frame {particles.frame[r - 1]} but estimates.csv row {r} is frame {frame[r - 1]}",
+                file=src, row=r, column="frame",
+            )
+        if P == 0:
+            particles = None
+    return Result(
+        root=root, info=info, frame=frame, t_s=t_s, cam_T_needle=poses, q95_trans_m=q95_t,
+        q95_rot_rad=q95_r, bimodal=bimodal, iterations=iters, latency_ms=lat, extra=extra,
+        smoothed=smoothed, particles=particles,
+    )
+
+
+def read_modes(out_dir: str | Path) -> ModeHistory:
+    """Read and validate ``modes.csv`` of a result directory; bad content raises :class:`InputError`.
+
+    Checks (each error names file, 1-based data row and column): integer ``frame`` non-decreasing
+    and ``mode`` = 0, 1, ... within a frame (at most :data:`MAX_MODES`), weights finite in [0, 1],
+    non-increasing within a frame and summing to 1 within :data:`MODE_WEIGHT_SUM_TOL`, unit
+    quaternions, finite covariance entries with a positive semi-definite matrix (smallest eigenvalue
+    >= -1e-9 times the largest magnitude). For a result whose writer never closed, a torn last line
+    and a last frame whose rows are incomplete (weights not summing to 1) are dropped.
+    """
+    root = Path(out_dir)
+    path = root / MODES_CSV
+    if not path.exists():
+        raise InputError("file not found", file=path)
+    complete = bool(_read_info(root)["complete"])
+    header, rows = _read_csv_rows(path, MODE_COLUMNS, complete)
+    idx = {c: i for i, c in enumerate(header)}
+    M = len(rows)
+    frame = np.zeros(M, dtype=np.int64)
+    mode = np.zeros(M, dtype=np.int64)
+    weight = np.zeros(M)
+    pose = np.zeros((M, 7))
+    cov = np.zeros((M, 6, 6))
+    for r, cells in enumerate(rows, start=1):
+        for c, arr in (("frame", frame), ("mode", mode)):
+            x = cells[idx[c]]
+            if not _INTEGER.fullmatch(x):
+                raise InputError(f"not a non-negative integer: {x!r}", file=path, row=r, column=c)
+            arr[r - 1] = int(x)
+        f, k = int(frame[r - 1]), int(mode[r - 1])
+        if r > 1 and f < frame[r - 2]:
+            raise InputError(f"frame {f} is smaller than the previous row's frame {frame[r - 2]}",
+                             file=path, row=r, column="frame")
+        want = int(mode[r - 2]) + 1 if r > 1 and f == frame[r - 2] else 0
+        if k != want:
+            raise InputError(f"mode {k} of frame {f}; expected {want} (modes count 0, 1, ... per frame)",
+                             file=path, row=r, column="mode")
+        if k >= MAX_MODES:
+            raise InputError(f"frame {f} has more than {MAX_MODES} modes", file=path, row=r, column="mode")
+        wk = _num(path, r, "weight", cells[idx["weight"]], allow_nan=False)
+        if not 0.0 <= wk <= 1.0:
+            raise InputError(f"weight {wk!r} is outside [0, 1]", file=path, row=r, column="weight")
+        if k > 0 and wk > weight[r - 2]:
+            raise InputError(f"weight {wk!r} exceeds the previous mode's {weight[r - 2]!r} (modes are sorted by "
+                             "decreasing weight)", file=path, row=r, column="weight")
+        weight[r - 1] = wk
+        for j, c in enumerate(POSE_COLUMNS):
+            pose[r - 1, j] = _num(path, r, c, cells[idx[c]], allow_nan=False)
+        norm = float(np.linalg.norm(pose[r - 1, 3:]))
+        if abs(norm - 1.0) > QUAT_NORM_TOL:
+            raise InputError(f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}; it must be 1 within "
+                             f"{QUAT_NORM_TOL:g}", file=path, row=r, column="qw")
+        vals = np.array([_num(path, r, c, cells[idx[c]], allow_nan=False) for c in COV_COLUMNS])
+        C = np.zeros((6, 6))
+        C[COV_INDICES] = vals
+        C = C + np.triu(C, 1).T
+        for i in range(6):
+            if C[i, i] < 0:
+                raise InputError(f"variance {C[i, i]!r} is negative", file=path, row=r, column=f"cov_{i}{i}")
+        eig = np.linalg.eigvalsh(C)
+        if eig[0] < -1e-9 * max(float(np.max(np.abs(eig))), 1e-300):
+            raise InputError(f"covariance is not positive semi-definite (smallest eigenvalue {eig[0]:.3g})",
+                             file=path, row=r, column="cov_00")
+        cov[r - 1] = C
+    # per-frame weight sums (the row named is the frame's last row)
+    keep = M
+    ends = [i for i in range(M) if i == M - 1 or frame[i + 1] != frame[i]]
+    start = 0
+    for end in ends:
+        total = math.fsum(weight[start:end + 1])
+        if abs(total - 1.0) > MODE_WEIGHT_SUM_TOL:
+            if not complete and end == M - 1:
+                keep = start  # the writer stopped in the middle of this frame's rows
+                break
+            raise InputError(f"the weights of frame {frame[end]} sum to {total!r}, not 1 (tolerance "
+                             f"{MODE_WEIGHT_SUM_TOL:g})", file=path, row=end + 1, column="weight")
+        start = end + 1
+    T = pose_from_xyz_quat(pose[:keep, :3], pose[:keep, 3:]) if keep else np.zeros((0, 4, 4))
+    return ModeHistory(frame=frame[:keep], mode=mode[:keep], weight=weight[:keep], cam_T_needle=T,
+                       cov_xi=cov[:keep])

@@ -1,1 +1,1 @@
-"""Summaries of a frame's pose posterior: spread, modes, the bimodality verdict (below the trackers, above the core)."""
+"""Summaries of a frame's pose posterior: spread, modes, bimodality verdict (below trackers and evaluation)."""

@@ -313,19 +313,6 @@ class Window:
             return
         self._prior_memo = (self._prior_key(self.poses[0]), _merged_rows(memo[1], sub_memo[1], index))
 
-    def overwrite(self, index: np.ndarray | list[int], source: Window, source_index: np.ndarray | list[int]) -> None:
-        """Hypotheses ``index`` become copies of ``source``'s hypotheses ``source_index``: poses, prior, evidence.
-
-        ``source`` shares this window's frames (this window, or a :meth:`subset` of it).
-        """
-        assert self.poses is not None and source.poses is not None and self.evidence is not None
-        index, source_index = np.asarray(index), np.asarray(source_index)
-        self.poses[:, index] = source.poses[:, source_index]
-        self.prior_mean[index] = source.prior_mean[source_index]
-        self.prior_W[index] = source.prior_W[source_index]
-        self.evidence[index] = source.evidence[source_index]
-        self._prior_memo = None
-
     def resample(self, index: np.ndarray) -> None:
         """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF)."""
         assert self.poses is not None and self.prior_mean is not None and self.prior_W is not None
@@ -334,3 +321,18 @@ class Window:
         self.prior_W = self.prior_W[index]
         if self.evidence is not None:
             self.evidence = self.evidence[index]
+
+
+def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Window,
+                    source_index: np.ndarray | list[int]) -> None:
+    """Hypotheses ``index`` of ``window`` become copies of ``source``'s ``source_index``: poses, prior, evidence.
+
+    ``source`` shares the window's frames (the window itself, or a :meth:`Window.subset` of it).
+    """
+    assert window.poses is not None and source.poses is not None and window.evidence is not None
+    index, source_index = np.asarray(index), np.asarray(source_index)
+    window.poses[:, index] = source.poses[:, source_index]
+    window.prior_mean[index] = source.prior_mean[source_index]
+    window.prior_W[index] = source.prior_W[source_index]
+    window.evidence[index] = source.evidence[source_index]
+    window._prior_memo = None

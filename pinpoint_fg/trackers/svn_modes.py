@@ -64,7 +64,7 @@ from factors.lie import local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.proposals import mode_proposals
 from pinpoint_fg.stein import floor_hessians
-from pinpoint_fg.window import Linearization, Window
+from pinpoint_fg.window import Linearization, Window, copy_hypotheses
 
 #: Kernel scale S of the scaled tangent units: [omega x3 (rad), v x3 (m)] (svn.py's default).
 SCALE = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
@@ -340,7 +340,7 @@ def allot(window: Window, found: Basins, admitted: Admitted, settings: ModeSetti
                 if not donors:
                     return moved
             dst = donors.pop(0)
-            window.overwrite([dst], src, [row])
+            copy_hypotheses(window, [dst], src, [row])
             if c > 0 or not new:
                 window.poses[-1, dst] = window.poses[-1, dst] @ se3_exp(rng.normal(size=6) * jitter_sigma)
             moved += 1

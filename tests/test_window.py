@@ -200,3 +200,13 @@ def test_adopt_keeps_the_oldest_frame_memo_equal_to_a_fresh_evaluation(L: int) -
     fresh = _fresh_copy(w)._unary(0, w.poses[0])
     for a, b in zip(memo, fresh, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("L", [1, 3, 5])
+def test_newest_value_at_the_current_poses_is_the_linearisation_value(L: int) -> None:
+    # The safeguard and the MAP polish compare newest_value(trial) with lin.value: at the current
+    # poses they must agree (else an inconsistency of ~1e-3 nats rejects every small improving step).
+    rng = np.random.default_rng(23)
+    w, _ = _window(L, 8, rng, frames=6)
+    lin = w.linearize()
+    np.testing.assert_allclose(w.newest_value(w.newest.copy(), lin), lin.value, rtol=1e-12, atol=1e-9)

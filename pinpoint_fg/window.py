@@ -361,7 +361,7 @@ class Window:
         c = c - 0.5 * np.sum(gn * -d_star, axis=1)
         self.evidence = self.forgetting * self.evidence + c
         self.prior_mean = self.poses[1] @ se3_exp(d_star)
-        self.prior_W = sqrt_information(Hn)
+        self.prior_W = np.swapaxes(np.linalg.cholesky(Hn), 1, 2)  # Hn is floored already: W^T W = Hn
         self.poses = self.poses[1:]
         self.frames = self.frames[1:]
         self.deltas = self.deltas[1:]

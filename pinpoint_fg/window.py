@@ -244,8 +244,20 @@ class Window:
             Hs.append(H)
         Bs = []
         newest_part = vals[-1]
+        if L > 1:
+            # all L-1 motion terms in one batched evaluation ((L-1) N poses; per-call overhead dominates at N ~ 50)
+            N = self.poses.shape[1]
+            D = np.broadcast_to(np.stack(self.deltas)[:, None], (L - 1, N, 4, 4)).reshape(-1, 4, 4)
+            r, Jp, Jc = res.motion_residual(self.poses[:-1].reshape(-1, 4, 4), self.poses[1:].reshape(-1, 4, 4), D)
+            Wm = np.stack(self.delta_W)[:, None]  # (L-1, 1, 6, 6)
+            e = (Wm @ r.reshape(L - 1, N, 6, 1))[..., 0]
+            Jp, Jc = Wm @ Jp.reshape(L - 1, N, 6, 6), Wm @ Jc.reshape(L - 1, N, 6, 6)
+            JpT, JcT = np.swapaxes(Jp, -1, -2), np.swapaxes(Jc, -1, -2)
+            m_val = 0.5 * np.sum(e * e, axis=-1)
+            m_gp, m_gc = (JpT @ e[..., None])[..., 0], (JcT @ e[..., None])[..., 0]
+            m_Hpp, m_Hpc, m_Hcc = JpT @ Jp, JpT @ Jc, JcT @ Jc
         for j in range(L - 1):
-            v, gp, gc, Hpp, Hpc, Hcc = self._motion(j)
+            v, gp, gc, Hpp, Hpc, Hcc = m_val[j], m_gp[j], m_gc[j], m_Hpp[j], m_Hpc[j], m_Hcc[j]
             if j == L - 2:
                 newest_part = newest_part + v
             vals[j] = vals[j] + v

@@ -226,21 +226,24 @@ def grasp_perpendicular_residual(
 
 
 def motion_residual(
-    cam_T_prev: np.ndarray, cam_T_cur: np.ndarray, cam_delta: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    cam_T_prev: np.ndarray, cam_T_cur: np.ndarray, cam_delta: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Motion residual ``Log((D T_prev)^-1 T_cur)`` (6, tangent ``[omega; v]``), D = grasper motion.
 
     ``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` moves camera-frame points with the grasper.
     With ``E = (D T_prev)^-1 T_cur`` and ``r = Log(E)``:
     ``dr/dxi_cur = Jr^-1(r)`` and ``dr/dxi_prev = -Jr^-1(r) Ad_{E^-1}`` (right Jacobians of SE(3)).
     Finite for every pose, including rotation angles at pi. ``cam_delta`` is ``(4, 4)`` or ``(N, 4, 4)``.
-    Returns ``r (N, 6)``, ``J_prev (N, 6, 6)``, ``J_cur (N, 6, 6)``.
+    Returns ``r (N, 6)``, ``J_prev (N, 6, 6)``, ``J_cur (N, 6, 6)`` (both None with ``jacobian=False``,
+    which skips their computation; ``r`` is identical).
     """
     Tp = as_pose_batch(cam_T_prev)
     Tc = as_pose_batch(cam_T_cur)
     D = np.asarray(cam_delta, dtype=float)
     E = se3_inverse(D @ Tp) @ Tc
     r = se3_log(E)
+    if not jacobian:
+        return r, None, None
     Jinv = se3_right_jacobian_inv(r)
     J_cur = Jinv
     J_prev = -Jinv @ se3_adjoint(se3_inverse(E))

@@ -324,8 +324,8 @@ class Window:
             part = self._newest_part_value(lin) if lin.newest_part is None else lin.newest_part
             # the last motion term at x_{L-2}'s conditional optimum given the current newest, minus at x_{L-2}
             dprev0 = -np.einsum("nij,nj->ni", lin.cond_inv[-1], lin.cond_g[-1])
-            r0, _, _ = res.motion_residual(self.poses[-2] @ se3_exp(dprev0), self.poses[-1], self.deltas[-1])
-            r1, _, _ = res.motion_residual(self.poses[-2], self.poses[-1], self.deltas[-1])
+            r0, _, _ = res.motion_residual(self.poses[-2] @ se3_exp(dprev0), self.poses[-1], self.deltas[-1], False)
+            r1, _, _ = res.motion_residual(self.poses[-2], self.poses[-1], self.deltas[-1], False)
             e0, e1 = r0 @ self.delta_W[-1].T, r1 @ self.delta_W[-1].T
             older = lin.value - part - 0.5 * np.sum(e0 * e0, axis=1) + 0.5 * np.sum(e1 * e1, axis=1)
             lin._newest_base = (self.poses, older)
@@ -336,7 +336,7 @@ class Window:
         rhs = lin.cond_g[-1] + np.einsum("nij,nj->ni", lin.cond_B[-1], dL)
         dprev = -np.einsum("nij,nj->ni", lin.cond_inv[-1], rhs)
         prev = self.poses[-2] @ se3_exp(dprev)
-        r, _, _ = res.motion_residual(prev, cam_T_newest, self.deltas[-1])
+        r, _, _ = res.motion_residual(prev, cam_T_newest, self.deltas[-1], jacobian=False)
         e = r @ self.delta_W[-1].T
         return v_new + 0.5 * np.sum(e * e, axis=1) + older
 
@@ -345,7 +345,7 @@ class Window:
         assert self.poses is not None
         j = self.size - 1
         v = self.frames[j].gauss_newton(self.poses[j])[0]  # memoised by the linearisation at these poses
-        r, _, _ = res.motion_residual(self.poses[j - 1], self.poses[j], self.deltas[j - 1])
+        r, _, _ = res.motion_residual(self.poses[j - 1], self.poses[j], self.deltas[j - 1], jacobian=False)
         e = r @ self.delta_W[j - 1].T
         return v + 0.5 * np.sum(e * e, axis=1)
 

@@ -122,3 +122,14 @@ def test_floor_hessians_equals_reference() -> None:
     fb = np.arange(1.0, 7.0)
     for a, b in zip(floor_hessians(H, 1e-2, fb), floor_hessians_reference(H, 1e-2, fb), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_motion_residual_without_jacobian_is_the_same_residual(kind: str) -> None:
+    rng = np.random.default_rng(12)
+    Tp, Tc = sample_poses(kind, 100, rng), sample_poses(kind, 100, rng)
+    D = se3_exp(rng.normal(size=(100, 6)) * 0.1)
+    r, Jp, Jc = res.motion_residual(Tp, Tc, D)
+    r0, none_p, none_c = res.motion_residual(Tp, Tc, D, jacobian=False)
+    assert none_p is None and none_c is None and Jp.shape == Jc.shape == (100, 6, 6)
+    np.testing.assert_array_equal(r0, r)

@@ -422,10 +422,22 @@ class Window:
         self._prior_memo = (self._prior_key(self.poses[0]), tuple(merged))
 
     def resample(self, index: np.ndarray) -> None:
-        """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF)."""
+        """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF).
+
+        The memo of the oldest frame's terms follows too (its rows are reindexed, as :meth:`adopt`
+        merges rows), so the next marginalisation need not re-evaluate the kept hypotheses.
+        """
         assert self.poses is not None and self.prior_mean is not None and self.prior_W is not None
+        memo = getattr(self, "_prior_memo", None)
+        valid = memo is not None and memo[0] == self._prior_key(self.poses[0])
         self.poses = self.poses[:, index]
         self.prior_mean = self.prior_mean[index]
         self.prior_W = self.prior_W[index]
         if self.evidence is not None:
             self.evidence = self.evidence[index]
+        self._prior_memo = None
+        if valid:
+            rows = tuple(a[index] for a in memo[1])
+            for a in rows:
+                a.flags.writeable = False
+            self._prior_memo = (self._prior_key(self.poses[0]), rows)

@@ -212,3 +212,19 @@ def test_newest_value_at_the_current_poses_is_the_linearisation_value(L: int) ->
     w, _ = _window(L, 8, rng, frames=6)
     lin = w.linearize()
     np.testing.assert_allclose(w.newest_value(w.newest.copy(), lin), lin.value, rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_resample_keeps_the_oldest_frame_memo_equal_to_a_fresh_evaluation(L: int) -> None:
+    rng = np.random.default_rng(24)
+    w, _ = _window(L, 8, rng, frames=4)
+    w.linearize()
+    index = np.array([0, 0, 3, 5, 5, 5, 7, 2])
+    w.resample(index)
+    assert w._prior_memo is not None  # reindexed, not dropped
+    memo = w._unary(0, w.poses[0])
+    fresh = _fresh_copy(w)._unary(0, w.poses[0])
+    for a, b in zip(memo, fresh, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    w.poses[0, 1] = w.poses[0, 1] @ se3_exp(np.full(6, 1e-3))  # a moved pose misses the memo
+    assert w._prior_memo[0] != w._prior_key(w.poses[0])

@@ -211,16 +211,17 @@ def grasp_perpendicular_residual(
 
     ``t_g`` and ``z_g`` are normalised here, so ``R t_g`` is already unit length and the
     paper's normalisation has zero derivative. ``d(z^T R t) = -z^T R [t]x omega``; translation
-    does not enter.
+    does not enter. ``cam_z_grasper`` is ``(3,)`` or one axis per pose ``(N, 3)`` (several frames'
+    poses evaluated in one batch).
     """
     T = as_pose_batch(cam_T_needle)
     tg = np.asarray(needle_t_grasp, dtype=float)
     tg = tg / np.linalg.norm(tg)
     zg = np.asarray(cam_z_grasper, dtype=float)
-    zg = zg / np.linalg.norm(zg)
+    zg = zg / np.linalg.norm(zg, axis=-1, keepdims=True)
     R = T[:, :3, :3]
-    r = (R @ tg) @ zg
-    Jw = -np.einsum("i,nij->nj", zg, R @ skew(tg))
+    r = np.sum((R @ tg) * zg, axis=-1)
+    Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ skew(tg))
     J = np.concatenate([Jw, np.zeros((T.shape[0], 3))], axis=1)
     return r[:, None], J[:, None, :]
 

@@ -236,6 +236,14 @@ class Window:
         """Gauss-Newton model of every window, eliminated onto the newest pose (see module docstring)."""
         assert self.poses is not None
         L = self.size
+        if L > 1:
+            from pinpoint_fg.likelihood import gauss_newton_frames
+
+            # the frames no memo holds, in one batched evaluation (fewer, larger NumPy calls); fills their memos
+            memo = getattr(self, "_prior_memo", None)
+            first = 1 if memo is not None and memo[0] == self._prior_key(self.poses[0]) else 0
+            if L - first > 1:
+                gauss_newton_frames(self.frames[first:], list(self.poses[first:]))
         vals, gs, Hs = [], [], []
         for j in range(L):
             v, g, H = self._unary(j, self.poses[j])

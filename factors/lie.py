@@ -157,12 +157,20 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     """``Exp`` of tangent vectors ``(..., 6)`` = ``[omega; v]`` -> poses ``(..., 4, 4)`` (GTSAM's Expmap)."""
     xi = np.asarray(xi, dtype=float)
     w, v = xi[..., :3], xi[..., 3:]
-    R = so3_exp(w)
-    # translation = J_l(w) v = R J_r(w) v
-    t = np.einsum("...ij,...j->...i", R @ so3_right_jacobian(w), v)
+    th2 = np.sum(w * w, axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    ths = np.where(small, 1.0, th)
+    sn = np.sin(ths)
+    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, sn / ths)
+    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
+    c = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - sn) / (ths * ths * ths))
+    W = skew(w)
+    WW = W @ W
     T = np.zeros(xi.shape[:-1] + (4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = t
+    T[..., :3, :3] = np.eye(3) + a[..., None, None] * W + b[..., None, None] * WW
+    # translation = J_l(w) v = (I + b [w]x + c [w]x^2) v (the same coefficients as R's series)
+    T[..., :3, 3] = v + np.einsum("...ij,...j->...i", b[..., None, None] * W + c[..., None, None] * WW, v)
     T[..., 3, 3] = 1.0
     return T
 

@@ -211,36 +211,40 @@ def grasp_perpendicular_residual(
 
     ``t_g`` and ``z_g`` are normalised here, so ``R t_g`` is already unit length and the
     paper's normalisation has zero derivative. ``d(z^T R t) = -z^T R [t]x omega``; translation
-    does not enter.
+    does not enter. ``cam_z_grasper`` is ``(3,)`` or one axis per pose ``(N, 3)`` (several frames'
+    poses evaluated in one batch).
     """
     T = as_pose_batch(cam_T_needle)
     tg = np.asarray(needle_t_grasp, dtype=float)
     tg = tg / np.linalg.norm(tg)
     zg = np.asarray(cam_z_grasper, dtype=float)
-    zg = zg / np.linalg.norm(zg)
+    zg = zg / np.linalg.norm(zg, axis=-1, keepdims=True)
     R = T[:, :3, :3]
-    r = (R @ tg) @ zg
-    Jw = -np.einsum("i,nij->nj", zg, R @ skew(tg))
+    r = np.sum((R @ tg) * zg, axis=-1)
+    Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ skew(tg))
     J = np.concatenate([Jw, np.zeros((T.shape[0], 3))], axis=1)
     return r[:, None], J[:, None, :]
 
 
 def motion_residual(
-    cam_T_prev: np.ndarray, cam_T_cur: np.ndarray, cam_delta: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    cam_T_prev: np.ndarray, cam_T_cur: np.ndarray, cam_delta: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Motion residual ``Log((D T_prev)^-1 T_cur)`` (6, tangent ``[omega; v]``), D = grasper motion.
 
     ``D = cam_T_grasper(k) cam_T_grasper(k-1)^-1`` moves camera-frame points with the grasper.
     With ``E = (D T_prev)^-1 T_cur`` and ``r = Log(E)``:
     ``dr/dxi_cur = Jr^-1(r)`` and ``dr/dxi_prev = -Jr^-1(r) Ad_{E^-1}`` (right Jacobians of SE(3)).
     Finite for every pose, including rotation angles at pi. ``cam_delta`` is ``(4, 4)`` or ``(N, 4, 4)``.
-    Returns ``r (N, 6)``, ``J_prev (N, 6, 6)``, ``J_cur (N, 6, 6)``.
+    Returns ``r (N, 6)``, ``J_prev (N, 6, 6)``, ``J_cur (N, 6, 6)`` (both None with ``jacobian=False``,
+    which skips their computation; ``r`` is identical).
     """
     Tp = as_pose_batch(cam_T_prev)
     Tc = as_pose_batch(cam_T_cur)
     D = np.asarray(cam_delta, dtype=float)
     E = se3_inverse(D @ Tp) @ Tc
     r = se3_log(E)
+    if not jacobian:
+        return r, None, None
     Jinv = se3_right_jacobian_inv(r)
     J_cur = Jinv
     J_prev = -Jinv @ se3_adjoint(se3_inverse(E))

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from factors import residuals as res
+from factors.lie import se3_exp
+
 _RIDGE = 1e-12  # relative ridge added before inverting 6x6 blocks
 
 
@@ -106,6 +109,37 @@ def whiten_motion(r: np.ndarray, Jp: np.ndarray, Jc: np.ndarray, W: np.ndarray
             JpT @ Jp, JpT @ Jc, JcT @ Jc)
 
 
+def chain_motion_terms(poses: np.ndarray, deltas: list[np.ndarray], delta_W: list[np.ndarray]
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """All L-1 motion terms of a chain ``poses (L, N, 4, 4)`` in one batched evaluation: :func:`whiten_motion`'s
+    value, g_prev, g_cur, H_pp, H_pc, H_cc, each with a leading (L-1) axis (per-call overhead dominates at N ~ 50).
+    """
+    L, N = poses.shape[:2]
+    D = np.broadcast_to(np.stack(deltas)[:, None], (L - 1, N, 4, 4)).reshape(-1, 4, 4)
+    r, Jp, Jc = res.motion_residual(poses[:-1].reshape(-1, 4, 4), poses[1:].reshape(-1, 4, 4), D)
+    Wm = np.stack(delta_W)[:, None]  # (L-1, 1, 6, 6)
+    e = (Wm @ r.reshape(L - 1, N, 6, 1))[..., 0]
+    Jp, Jc = Wm @ Jp.reshape(L - 1, N, 6, 6), Wm @ Jc.reshape(L - 1, N, 6, 6)
+    JpT, JcT = np.swapaxes(Jp, -1, -2), np.swapaxes(Jc, -1, -2)
+    return (0.5 * np.sum(e * e, axis=-1), (JpT @ e[..., None])[..., 0], (JcT @ e[..., None])[..., 0],
+            JpT @ Jp, JpT @ Jc, JcT @ Jc)
+
+
+def add_chain_motion(vals: list[np.ndarray], gs: list[np.ndarray], Hs: list[np.ndarray],
+                     motion: tuple[np.ndarray, ...]) -> tuple[list, list, list, list]:
+    """Add :func:`chain_motion_terms` to the poses' own terms: values, gradients, informations and the
+    coupling blocks ``H_{j,j+1}`` of the block-tridiagonal chain (the inputs of :func:`eliminate_onto_newest`)."""
+    m_val, m_gp, m_gc, m_Hpp, m_Hpc, m_Hcc = motion
+    vals, gs, Hs = list(vals), list(gs), list(Hs)
+    for j in range(len(vals) - 1):
+        vals[j] = vals[j] + m_val[j]
+        gs[j] = gs[j] + m_gp[j]
+        gs[j + 1] = gs[j + 1] + m_gc[j]
+        Hs[j] = Hs[j] + m_Hpp[j]
+        Hs[j + 1] = Hs[j + 1] + m_Hcc[j]
+    return vals, gs, Hs, [m_Hpc[j] for j in range(len(vals) - 1)]
+
+
 def eliminate_onto_newest(window_value: np.ndarray, gs: list[np.ndarray], Hs: list[np.ndarray],
                           Bs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, list]:
     """Forward Schur sweep over a chain: eliminate ``x_0 .. x_{L-2}`` onto the newest pose.
@@ -137,6 +171,23 @@ def conditional_step(cond_inv: np.ndarray, cond_g: np.ndarray, cond_B: np.ndarra
     conditional optimum given the step ``d_next`` of pose j+1."""
     rhs = cond_g + np.einsum("nij,nj->ni", cond_B, d_next)
     return -np.einsum("nij,nj->ni", cond_inv, rhs)
+
+
+def older_value(lin: Linearization, prev_T: np.ndarray, newest_T: np.ndarray, delta: np.ndarray,
+                W: np.ndarray) -> np.ndarray:
+    """The older poses' share ``(N,)`` of ``lin.value``: everything but the newest pose's own terms and the last
+    motion term, that term taken with ``x_{L-2}`` at its conditional optimum given the current newest pose.
+
+    ``lin.value`` already holds the Gauss-Newton gain of moving ``x_{L-2}`` to that optimum, including the last
+    motion term's share; counting the exact last term from the unmoved ``x_{L-2}`` would count that gain twice
+    (measured 1e-3 nats: the size of the MAP polish's convergence test, which then rejected every step up to
+    its iteration cap on a quarter of the frames at L = 5). ``prev_T``, ``newest_T`` (N, 4, 4) the current
+    poses ``x_{L-2}``, ``x_{L-1}``; ``delta``, ``W`` the last motion and its whitening.
+    """
+    dprev0 = -np.einsum("nij,nj->ni", lin.cond_inv[-1], lin.cond_g[-1])
+    r0 = res.motion_residual(prev_T @ se3_exp(dprev0), newest_T, delta, False)[0]
+    r1 = res.motion_residual(prev_T, newest_T, delta, False)[0]
+    return lin.value - lin.newest_part - motion_value(r0, W) + motion_value(r1, W)
 
 
 def marginal_prior(v0: np.ndarray, g0: np.ndarray, H0: np.ndarray,

@@ -145,12 +145,23 @@ class FrameLikelihood:
                 self._terms.append(("grasp_position", o.cam_T_grasper[:3, 3].copy()))
             if sw.grasp_perpendicular:
                 self._terms.append(("grasp_perpendicular", o.cam_T_grasper[:3, 2].copy()))
+        self._data = dict(self._terms)
         self._noise = {name: model.noise[name] for name, _ in self._terms}
         self._W = {name: n.sqrt_information for name, n in self._noise.items()}
         self._loss: dict[str, RobustLoss] = {name: model.noise.loss(name) for name, _ in self._terms}
         self._tip, self._tail, self._grasp, self._tgrasp = nd.tip_m, nd.tail_m, nd.grasp_m, nd.grasp_tangent
         self.dim = sum(self._term_dim(name, data) for name, data in self._terms)
         self._gn_memo: tuple[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+        # frames with equal keys evaluate their stacked terms in one call (:func:`gauss_newton_frames`):
+        # everything those terms read besides the measurement (models are rebuilt per frame, equal by value)
+        noise = model.noise
+        self._stack_key = (
+            np.asarray(self._K, dtype=float).tobytes(), float(model.min_depth_m),
+            *(np.asarray(a, dtype=float).tobytes() for a in (self._tip, self._tail, self._grasp, self._tgrasp)),
+            *((name, np.asarray(noise[name].mean, dtype=float).tobytes(),
+               np.asarray(noise[name].sqrt_information, dtype=float).tobytes(), noise.loss(name))
+              for name in _STACKED_TERMS),
+        )
 
     @staticmethod
     def _term_dim(name: str, data: object) -> int:
@@ -178,19 +189,36 @@ class FrameLikelihood:
             return res.grasp_position_residual(T, self._grasp, data)
         return res.grasp_perpendicular_residual(T, self._tgrasp, data)
 
+    def _whiten(self, name: str, r: np.ndarray, J: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Whitened residual ``W (r - mean)`` and Jacobian ``W J`` of term ``name`` (J None: skipped)."""
+        n = self._noise[name]
+        W = self._W[name]
+        if name == "conic":
+            # one scalar noise per pixel: W and mean are 1x1
+            return (r - n.mean[0]) * W[0, 0], (None if J is None else J * W[0, 0])
+        return (r - n.mean) @ W.T, (None if J is None else W @ J)
+
     def _blocks(self, T: np.ndarray, jacobian: bool) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
         """Per term: name, whitened residual ``(N, d)`` and Jacobian ``(N, d, 6)`` (None without jacobian)."""
         out = []
         for name, data in self._terms:
             r, J = self._raw(name, data, T, jacobian)
-            n = self._noise[name]
-            W = self._W[name]
-            if name == "conic":
-                # one scalar noise per pixel: W and mean are 1x1
-                out.append((name, (r - n.mean[0]) * W[0, 0], J * W[0, 0] if jacobian else None))
-            else:
-                out.append((name, (r - n.mean) @ W.T, W @ J if jacobian else None))
+            out.append((name, *self._whiten(name, r, J if jacobian else None)))
         return out
+
+    def _robust(self, name: str, e: np.ndarray, J: np.ndarray | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Loss ``(N,)`` of one whitened block and its IRLS-weighted ``sqrt(w) e``, ``sqrt(w) J`` (see :meth:`irls`)."""
+        rl = self._loss[name]
+        if not rl.active:
+            return 0.5 * np.sum(e * e, axis=1), e, J
+        # a conic block is one pixel; the others are the whole term
+        d = np.abs(e) if name == "conic" else np.linalg.norm(e, axis=1, keepdims=True)
+        loss = np.sum(rl.loss(d), axis=1)
+        sw = np.sqrt(rl.weight(d))
+        if name != "conic":
+            sw = np.broadcast_to(sw, e.shape)
+        return loss, e * sw, (None if J is None else J * sw[:, :, None])
 
     def whitened(self, cam_T_needle: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Whitened residuals ``e (N, m)`` and Jacobians ``(N, m, 6)`` (None with ``jacobian=False``).
@@ -219,19 +247,8 @@ class FrameLikelihood:
         loss = np.zeros(N)
         es, Js = [], []
         for name, e, J in self._blocks(T, jacobian):
-            rl = self._loss[name]
-            if rl.active:
-                # a conic block is one pixel; the others are the whole term
-                d = np.abs(e) if name == "conic" else np.linalg.norm(e, axis=1, keepdims=True)
-                loss += np.sum(rl.loss(d), axis=1)
-                sw = np.sqrt(rl.weight(d))
-                if name != "conic":
-                    sw = np.broadcast_to(sw, e.shape)
-                e = e * sw
-                if jacobian:
-                    J = J * sw[:, :, None]
-            else:
-                loss += 0.5 * np.sum(e * e, axis=1)
+            b_loss, e, J = self._robust(name, e, J)
+            loss += b_loss
             es.append(e)
             Js.append(J)
         if not es:
@@ -277,20 +294,7 @@ class FrameLikelihood:
         evaluates trial poses (a safeguard) and then linearises at the accepted ones gets the
         second call free, bitwise identical. The memo is kept read-only; callers get copies.
         """
-        T = res.as_pose_batch(cam_T_needle)
-        key = T.tobytes()
-        if self._gn_memo is not None and self._gn_memo[0] == key:
-            return tuple(a.copy() for a in self._gn_memo[1])
-        loss, e, J = self.irls(T)
-        c, cg, cH = self.cheirality(T)
-        nll = loss + c
-        JT = np.swapaxes(J, 1, 2)
-        grad = (JT @ e[:, :, None])[:, :, 0] + cg
-        H = JT @ J + cH
-        for a in (nll, grad, H):
-            a.flags.writeable = False
-        self._gn_memo = (key, (nll, grad, H))
-        return nll.copy(), grad.copy(), H.copy()
+        return gauss_newton_frames([self], [cam_T_needle])[0]
 
     def gtsam_factors(self, key: int) -> list[gtsam.NonlinearFactor]:
         """The same terms as GTSAM factors on ``key``, biases included.
@@ -327,3 +331,102 @@ class FrameLikelihood:
                 out.append(GraspPerpendicularFactor(key, nd.grasp_tangent, data, rl.gtsam_model(n.gtsam_model()),
                                                     bias=float(n.mean[0])))
         return out
+
+
+#: Terms whose data is one small vector per frame: several frames' poses are evaluated in one call.
+_STACKED_TERMS = ("tip", "tail", "grasp_position", "grasp_perpendicular")
+
+
+def gauss_newton_frames(frames: list[FrameLikelihood], cam_T_needle: list[np.ndarray]
+                        ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``[f.gauss_newton(T) for f, T in zip(frames, cam_T_needle)]``, with fewer, larger NumPy calls.
+
+    :meth:`FrameLikelihood.gauss_newton` is this function for one frame (its blocks concatenated,
+    ``J^T J`` in one product: the fewest calls for one frame). Frames that share a
+    measurement model (equal by value: a window's frames) have each keypoint / grasp term evaluated for
+    all their poses in ONE residual call (each pose with its own frame's measurement), since at
+    ~50 poses per frame per-call overhead, not arithmetic, is the cost; the conic (a different
+    pixel set per frame) is evaluated per frame. Per pose, ``nll = sum_b rho_b + cheirality``,
+    ``grad = sum_b J_b^T w_b e_b`` and ``H = sum_b J_b^T w_b J_b`` (the same sums as the
+    concatenated ``J^T e`` / ``J^T J``, in another order). Each frame's memo is used and updated.
+    """
+    out: list = [None] * len(frames)
+    todo: dict[int, list] = {}
+    for k, (f, T) in enumerate(zip(frames, cam_T_needle, strict=True)):
+        T = res.as_pose_batch(T)
+        key = T.tobytes()
+        if f._gn_memo is not None and f._gn_memo[0] == key:
+            out[k] = tuple(a.copy() for a in f._gn_memo[1])
+        else:
+            todo.setdefault(f._stack_key, []).append((k, f, T, key))
+    for items in todo.values():
+        if len(items) == 1:  # one frame: its blocks concatenated, one J^T J (fewest calls for one frame)
+            k, f, T, key = items[0]
+            loss, e, J = f.irls(T)
+            c, cg, cH = f.cheirality(T)
+            JT = np.swapaxes(J, 1, 2)
+            _store(f, key, (loss + c, (JT @ e[:, :, None])[:, :, 0] + cg, JT @ J + cH))
+            out[k] = tuple(a.copy() for a in f._gn_memo[1])
+            continue
+        Ts = [it[2] for it in items]
+        offs = np.cumsum([0] + [T.shape[0] for T in Ts])
+        T_all = Ts[0] if len(Ts) == 1 else np.concatenate(Ts)
+        f0 = items[0][1]
+        acc = (np.zeros(T_all.shape[0]), np.zeros((T_all.shape[0], 6)), np.zeros((T_all.shape[0], 6, 6)))
+        loss, grad, H = acc
+        whole: list[tuple[np.ndarray, np.ndarray]] = []  # small blocks on every row: one J^T J for all of them
+
+        def add(name: str, f: FrameLikelihood, data: object, T: np.ndarray, rows: slice | np.ndarray,
+                acc: tuple[np.ndarray, np.ndarray, np.ndarray] = acc, whole: list = whole) -> None:
+            r, J = f._raw(name, data, T)
+            b_loss, e, J = f._robust(name, *f._whiten(name, r, J))
+            acc[0][rows] += b_loss
+            if isinstance(rows, slice) and rows == slice(None) and name != "conic":
+                whole.append((e, J))
+                return
+            JT = np.swapaxes(J, 1, 2)
+            acc[1][rows] += (JT @ e[:, :, None])[:, :, 0]
+            acc[2][rows] += JT @ J
+
+        for name in _STACKED_TERMS:
+            members = [i for i, it in enumerate(items) if name in it[1]._data]
+            if not members:
+                continue
+            if len(members) == 1:
+                i = members[0]
+                add(name, items[i][1], items[i][1]._data[name], Ts[i], slice(offs[i], offs[i + 1]))
+                continue
+            data = np.concatenate([np.broadcast_to(np.asarray(items[i][1]._data[name], dtype=float),
+                                                   (Ts[i].shape[0], len(items[i][1]._data[name])))
+                                   for i in members])
+            fm = items[members[0]][1]  # the term's noise and loss come from the shared model
+            if len(members) == len(items):
+                add(name, fm, data, T_all, slice(None))
+            else:
+                rows = np.concatenate([np.arange(offs[i], offs[i + 1]) for i in members])
+                add(name, fm, data, T_all[rows], rows)
+        for i, (_, f, T, _) in enumerate(items):
+            if "conic" in f._data:
+                add("conic", f, f._data["conic"], T, slice(offs[i], offs[i + 1]))
+        if whole:
+            e = whole[0][0] if len(whole) == 1 else np.concatenate([b[0] for b in whole], axis=1)
+            J = whole[0][1] if len(whole) == 1 else np.concatenate([b[1] for b in whole], axis=1)
+            JT = np.swapaxes(J, 1, 2)
+            grad += (JT @ e[:, :, None])[:, :, 0]
+            H += JT @ J
+        c, cg, cH = f0.cheirality(T_all)
+        loss += c
+        grad += cg
+        H += cH
+        for i, (k, f, _, key) in enumerate(items):
+            sl = slice(offs[i], offs[i + 1])
+            _store(f, key, (loss[sl].copy(), grad[sl].copy(), H[sl].copy()))
+            out[k] = tuple(a.copy() for a in f._gn_memo[1])
+    return out
+
+
+def _store(f: FrameLikelihood, key: bytes, result: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    """Keep ``result`` (own arrays, made read-only) as frame ``f``'s memo for the poses whose bytes are ``key``."""
+    for a in result:
+        a.flags.writeable = False
+    f._gn_memo = (key, result)

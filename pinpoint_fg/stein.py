@@ -131,6 +131,7 @@ Particles are differences in whatever chart the caller chose; nothing here retra
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -230,12 +231,21 @@ def median_bandwidth(xi_white: np.ndarray, floor: float) -> float:
     return _bandwidth_from_d2(np.einsum("ijk,ijk->ij", diff, diff), floor)
 
 
+@functools.lru_cache(maxsize=16)
+def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, k=1)``, computed once per ``n`` (read-only)."""
+    rows, cols = np.triu_indices(n, k=1)
+    rows.flags.writeable = False
+    cols.flags.writeable = False
+    return rows, cols
+
+
 def _bandwidth_from_d2(d2: np.ndarray, floor: float) -> float:
     """The median heuristic from the (N, N) whitened squared distances (see :func:`median_bandwidth`)."""
     n = d2.shape[0]
     if n < 2:
         return float(floor)
-    m = float(np.median(d2[np.triu_indices(n, k=1)]))
+    m = float(np.median(d2[_upper_pairs(n)]))
     return max(m / math.log(n), float(floor))
 
 
@@ -300,9 +310,12 @@ def floor_hessians(
     return H_fl, H_inv
 
 
-def _floor_eig(H: np.ndarray, eps: float, fb: np.ndarray, min_info_rel: float
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`floor_hessians` without the argument checks; also returns the floored eigenvalues (N, d)."""
+def _floor_eig(H: np.ndarray, eps: float, fb: np.ndarray, min_info_rel: float, want: str = "both"
+               ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
+    """:func:`floor_hessians` without the argument checks; also returns the floored eigenvalues (N, d).
+
+    ``want``: "both", "floored" or "inverse" — the other matrix is returned as None (not computed).
+    """
     d = H.shape[-1]
     finite = np.all(np.isfinite(H), axis=(1, 2))
     Hs = np.where(finite[:, None, None], H, 0.0)
@@ -315,7 +328,9 @@ def _floor_eig(H: np.ndarray, eps: float, fb: np.ndarray, min_info_rel: float
     w_fl = np.where(usable[:, None], w_fl, fb[None, :])
     V = np.where(usable[:, None, None], V, np.eye(d)[None, :, :])
     VT = np.swapaxes(V, 1, 2)
-    return (V * w_fl[:, None, :]) @ VT, (V / w_fl[:, None, :]) @ VT, w_fl
+    H_fl = (V * w_fl[:, None, :]) @ VT if want != "inverse" else None
+    H_inv = (V / w_fl[:, None, :]) @ VT if want != "floored" else None
+    return H_fl, H_inv, w_fl
 
 
 def stein_step(
@@ -364,7 +379,9 @@ def stein_step(
         raise InputError(f"hess must have shape {(n, d, d)}, got {hess.shape}", column="hess")
     eps = config.eig_floor_rel
     fallback = 1.0 / np.asarray(config.scale, dtype=float) ** 2
-    H_fl, H_inv, w_fl = _floor_eig(hess, eps, fallback, 1e-12)
+    # the kernel-weighted and kernel-average matrices need H~_j only, Algorithm 1 and "own" H~_j^-1 only
+    need = "inverse" if config.preconditioner == "newton-alg1" or config.hessian == "own" else "floored"
+    H_fl, H_inv, _ = _floor_eig(hess, eps, fallback, 1e-12, want=need)
 
     if config.preconditioner == "newton-alg1":
         nat = np.einsum("jab,jb->ja", H_inv, g)  # H~_j^-1 g_j
@@ -387,7 +404,7 @@ def stein_step(
     # Floored like every H~_j. (A k-weighted sum of the floored H~_j keeps cond <= 1/eps, but the
     # repulsion term can exceed it, and measured on the tracker it does on most iterations: a bound
     # that skips this second eigendecomposition never fired, so there is none.)
-    _, Hbar_inv, _ = _floor_eig(Hbar, eps, fallback, 1e-12)
+    _, Hbar_inv, _ = _floor_eig(Hbar, eps, fallback, 1e-12, want="inverse")
     step = np.einsum("iab,ib->ia", Hbar_inv, phi)
     return SteinStep(step=config.step_size * step, bandwidth=h, kernel=K, velocity=phi)
 

@@ -47,15 +47,17 @@ from factors import residuals as res
 from factors.lie import local, se3_exp
 from pinpoint_fg.elimination import (
     Linearization,
+    add_chain_motion,
+    chain_motion_terms,
     conditional_step,
     eliminate_onto_newest,
     marginal_prior,
     motion_value,
-    sqrt_information,
+    older_value,
     whiten_motion,
     whiten_prior,
 )
-from pinpoint_fg.likelihood import FrameLikelihood
+from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
 
 #: Random-walk noise per frame when the motion model is off or kinematics are missing:
 #: [omega (rad) x3, v (m) x3] = 5 deg, 1 mm (the particle filter's random walk, DESIGN.md).
@@ -185,34 +187,28 @@ class Window:
             self._prior_memo = (key, (nll, g, H))
         return nll, g, H
 
-    def _motion(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Motion term between poses j and j+1: value, g_prev, g_cur, H_pp, H_pc, H_cc."""
-        assert self.poses is not None
-        r, Jp, Jc = res.motion_residual(self.poses[j], self.poses[j + 1], self.deltas[j])
-        return whiten_motion(r, Jp, Jc, self.delta_W[j])
-
     def linearize(self) -> Linearization:
         """Gauss-Newton model of every window, eliminated onto the newest pose (see module docstring)."""
         assert self.poses is not None
         L = self.size
+        if L > 1:
+            # the frames no memo holds, in one batched evaluation (fewer, larger NumPy calls); fills their memos
+            memo = getattr(self, "_prior_memo", None)
+            first = 1 if memo is not None and memo[0] == self._prior_key(self.poses[0]) else 0
+            if L - first > 1:
+                gauss_newton_frames(self.frames[first:], list(self.poses[first:]))
         vals, gs, Hs = [], [], []
         for j in range(L):
             v, g, H = self._unary(j, self.poses[j])
             vals.append(v)
             gs.append(g)
             Hs.append(H)
-        Bs = []
         newest_part = vals[-1]
-        for j in range(L - 1):
-            v, gp, gc, Hpp, Hpc, Hcc = self._motion(j)
-            if j == L - 2:
-                newest_part = newest_part + v
-            vals[j] = vals[j] + v
-            gs[j] = gs[j] + gp
-            gs[j + 1] = gs[j + 1] + gc
-            Hs[j] = Hs[j] + Hpp
-            Hs[j + 1] = Hs[j + 1] + Hcc
-            Bs.append(Hpc)
+        Bs: list[np.ndarray] = []
+        if L > 1:
+            motion = chain_motion_terms(self.poses, self.deltas, self.delta_W)
+            newest_part = newest_part + motion[0][-1]
+            vals, gs, Hs, Bs = add_chain_motion(vals, gs, Hs, motion)
         window_value = np.sum(vals, axis=0)
         c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs)
         return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
@@ -238,30 +234,28 @@ class Window:
         Exact for the newest pose's own terms; the older poses' contribution uses the GN model
         ``lin`` (constant + the coupling through the last motion term), which is what the
         backtracking safeguard and the MAP choice compare.
+
+        Consistent with ``lin``: at the current newest poses it returns ``lin.value`` (to round-off;
+        :func:`~pinpoint_fg.elimination.older_value` says why the last motion term needs care).
         """
         assert self.poses is not None
         if self.size == 1:
             return self._unary(0, cam_T_newest)[0]
         # exact terms of the newest pose + exact last motion term with x_{L-2} at its conditional optimum
         j = self.size - 1
-        # the remaining older terms: GN value of the eliminated part at d_prev (evaluated first: the
-        # current poses' evaluation is memoised by the linearisation and must not evict the trial's)
-        older = lin.value - (self._newest_part_value(lin) if lin.newest_part is None else lin.newest_part)
+        # the older terms' share, once per linearisation (the current poses' evaluation is memoised)
+        base = getattr(lin, "_newest_base", None)
+        if base is None or base[0] is not self.poses:
+            lin._newest_base = (self.poses, older_value(lin, self.poses[-2], self.poses[-1], self.deltas[-1],
+                                                        self.delta_W[-1]))
+        older = lin._newest_base[1]
         v_new = self.frames[j].gauss_newton(cam_T_newest)[0]  # memoised: the next linearisation reuses it
         # conditional optimum of x_{L-2} given the move of the newest: linear in the newest's tangent change
         dL = local(self.poses[-1], cam_T_newest)
         dprev = conditional_step(lin.cond_inv[-1], lin.cond_g[-1], lin.cond_B[-1], dL)
         prev = self.poses[-2] @ se3_exp(dprev)
-        r, _, _ = res.motion_residual(prev, cam_T_newest, self.deltas[-1])
+        r, _, _ = res.motion_residual(prev, cam_T_newest, self.deltas[-1], jacobian=False)
         return v_new + motion_value(r, self.delta_W[-1]) + older
-
-    def _newest_part_value(self, lin: Linearization) -> np.ndarray:
-        """Current value of the newest pose's own terms plus the last motion term."""
-        assert self.poses is not None
-        j = self.size - 1
-        v = self.frames[j].gauss_newton(self.poses[j])[0]  # memoised by the linearisation at these poses
-        r, _, _ = res.motion_residual(self.poses[j - 1], self.poses[j], self.deltas[j - 1])
-        return v + motion_value(r, self.delta_W[j - 1])
 
     def _marginalise_oldest(self) -> None:
         """Schur-complement the oldest pose into a Gaussian prior on the next one."""
@@ -271,7 +265,7 @@ class Window:
         c, d_star, Hn = marginal_prior(v0, g0, H0, whiten_motion(r, Jp, Jc, self.delta_W[0]))
         self.evidence = self.forgetting * self.evidence + c
         self.prior_mean = self.poses[1] @ se3_exp(d_star)
-        self.prior_W = sqrt_information(Hn)
+        self.prior_W = np.swapaxes(np.linalg.cholesky(Hn), 1, 2)  # Hn is floored already: W^T W = Hn
         self.poses = self.poses[1:]
         self.frames = self.frames[1:]
         self.deltas = self.deltas[1:]
@@ -314,13 +308,28 @@ class Window:
         self._prior_memo = (self._prior_key(self.poses[0]), _merged_rows(memo[1], sub_memo[1], index))
 
     def resample(self, index: np.ndarray) -> None:
-        """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF)."""
+        """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF).
+
+        The memo of the oldest frame's terms follows too (its rows are reindexed, as :meth:`adopt`
+        merges rows), so the next marginalisation need not re-evaluate the kept hypotheses.
+        """
         assert self.poses is not None and self.prior_mean is not None and self.prior_W is not None
+        memo = getattr(self, "_prior_memo", None)
+        valid = memo is not None and memo[0] == self._prior_key(self.poses[0])
         self.poses = self.poses[:, index]
         self.prior_mean = self.prior_mean[index]
         self.prior_W = self.prior_W[index]
         if self.evidence is not None:
             self.evidence = self.evidence[index]
+        self._prior_memo = (self._prior_key(self.poses[0]), _reindexed_rows(memo[1], index)) if valid else None
+
+
+def _reindexed_rows(arrays: tuple[np.ndarray, ...], index: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Read-only copies of memoised per-hypothesis arrays, rows ``index``."""
+    rows = tuple(a[index] for a in arrays)
+    for a in rows:
+        a.flags.writeable = False
+    return rows
 
 
 def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Window,

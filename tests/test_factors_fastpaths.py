@@ -8,7 +8,9 @@ import pytest
 from factors import residuals as res
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
-from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
+from factors.robust import RobustLoss
+from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, gauss_newton_frames
+from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
 from tests.poses import KINDS, sample_poses
@@ -122,3 +124,53 @@ def test_floor_hessians_equals_reference() -> None:
     fb = np.arange(1.0, 7.0)
     for a, b in zip(floor_hessians(H, 1e-2, fb), floor_hessians_reference(H, 1e-2, fb), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_motion_residual_without_jacobian_is_the_same_residual(kind: str) -> None:
+    rng = np.random.default_rng(12)
+    Tp, Tc = sample_poses(kind, 100, rng), sample_poses(kind, 100, rng)
+    D = se3_exp(rng.normal(size=(100, 6)) * 0.1)
+    r, Jp, Jc = res.motion_residual(Tp, Tc, D)
+    r0, none_p, none_c = res.motion_residual(Tp, Tc, D, jacobian=False)
+    assert none_p is None and none_c is None and Jp.shape == Jc.shape == (100, 6, 6)
+    np.testing.assert_array_equal(r0, r)
+
+
+def test_grasp_perpendicular_with_one_axis_per_pose_equals_per_pose_calls() -> None:
+    rng = np.random.default_rng(13)
+    T = sample_poses("uniform", 40, rng)
+    z = rng.normal(size=(40, 3))
+    r, J = res.grasp_perpendicular_residual(T, NEEDLE.grasp_tangent, z)
+    for i in range(40):
+        ri, Ji = res.grasp_perpendicular_residual(T[i], NEEDLE.grasp_tangent, z[i] * 3.0)  # unnormalised
+        np.testing.assert_allclose(r[i], ri[0], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(J[i], Ji[0], rtol=0, atol=1e-14)
+
+
+def test_gauss_newton_frames_equals_per_frame_evaluation() -> None:
+    # several frames with different term sets (no mask, no tip, no kinematics), batched, equal
+    # a fresh per-frame evaluation; a frame of another noise model is grouped on its own
+    rng = np.random.default_rng(14)
+    frames, poses = [], []
+    for k in range(6):
+        lik, T = _frame(rng)
+        o = lik.observation
+        if k == 1:
+            o = Observation(0, 0.0, tip_px=o.tip_px, tail_px=o.tail_px, cam_T_grasper=o.cam_T_grasper)
+        if k == 2:
+            o = Observation(0, 0.0, tail_px=o.tail_px, backbone_px=o.backbone_px)
+        model = MeasurementModel(CAM, NEEDLE)  # a new, equal model per frame (as trackers build them)
+        if k == 4:
+            model = MeasurementModel(CAM, NEEDLE, NoiseConfig().with_robust({"tip": RobustLoss("cauchy", 2.0)}))
+        frames.append(FrameLikelihood(o, model))
+        poses.append(T[: 10 + k])
+    frames[3].gauss_newton(poses[3])  # a memo hit inside the batch
+    got = gauss_newton_frames(frames, poses)
+    for f, T, g in zip(frames, poses, got, strict=True):
+        ref = FrameLikelihood(f.observation, f.model).gauss_newton(T)
+        for a, b in zip(g, ref, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+        memo = f.gauss_newton(T)  # the batch filled every frame's memo
+        for a, b in zip(memo, g, strict=True):
+            assert np.array_equal(a, b)

@@ -10,6 +10,7 @@ part of it.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import threading
@@ -21,17 +22,17 @@ from tqdm import tqdm
 
 from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result.schema import FrameEstimate
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.posterior.bimodality import assess_bimodality
 from pinpoint_fg.posterior.summary import modes_of_estimate, posterior_columns
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig
+from pinpoint_fg.trackers.base import Tracker, TrackerConfig
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
 DEFAULT_PARTICLES = {"svn": 50, "svgd": 50, "pf": 3000, "map": 1, "mht": 4}
@@ -102,7 +103,7 @@ def bimodality_verdict(particles: np.ndarray, T_map: np.ndarray, weights: np.nda
     return bool(assess_bimodality(particles, T_map, weights=weights).bimodal)
 
 
-def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bool | None = None) -> FrameEstimate:
+def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bool | None = None) -> Estimate:
     """Result row of an estimate: the GMM bimodality verdict of its particle set (computed unless given), its
     modes (modes.csv) and the extra columns ``bimodal_modes`` and ``weak_*`` (:mod:`pinpoint_fg.posterior.summary`)."""
     if bimodal is None:
@@ -111,12 +112,7 @@ def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bo
     extra = {"reseeded": float(est.reseeded)}
     extra.update({k: float(v) for k, v in est.extra.items()})
     extra.update(posterior_columns(modes, est.cam_T_needle))
-    return FrameEstimate(
-        frame=est.frame, t_s=est.t_s, cam_T_needle=est.cam_T_needle, q95_trans_m=est.q95_trans_m,
-        q95_rot_rad=est.q95_rot_rad, bimodal=bimodal, iterations=est.iterations, latency_ms=est.latency_ms,
-        particles_T=est.particles, log_posterior=est.log_posterior, weight=est.weights,
-        smoothed=est.smoothed, extra=extra, modes=modes,
-    )
+    return dataclasses.replace(est, bimodal=bimodal, extra=extra, modes=modes)
 
 
 def _exit_with_parent(parent_pid: int) -> None:
@@ -159,12 +155,12 @@ class _Verdicts:
         else:
             self.pending.append(self.pool.submit(to_frame_estimate, est))
 
-    def ready(self, wait: bool = False) -> list[FrameEstimate]:
+    def ready(self, wait: bool = False) -> list[Estimate]:
         """Rows whose summaries are in, in frame order (all of them with ``wait``)."""
         out = []
         while self.pending:
             row = self.pending[0]
-            if not isinstance(row, FrameEstimate):
+            if not isinstance(row, Estimate):
                 if not (wait or row.done()):
                     break
                 row = row.result()

@@ -12,11 +12,11 @@ import pytest
 from factors.lie import se3_exp
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.eval.modes import reference_rates
 from pinpoint_fg.eval.report import evaluate_results
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result.schema import FrameEstimate
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.sim.scenarios import simulate
@@ -55,9 +55,9 @@ def _write(out: Path, rec: Recording, method: str, multi: set[int], far: set[int
             else:
                 modes = (Mode(T, 1.0, COV),)
             P = T[None] @ se3_exp(xi)
-            w.write(FrameEstimate(
+            w.write(Estimate(
                 frame=r.frame, t_s=r.t_s, cam_T_needle=T, q95_trans_m=2e-3, q95_rot_rad=0.1, bimodal=False,
-                iterations=1, latency_ms=5.0, particles_T=P, log_posterior=np.zeros(50), modes=modes,
+                iterations=1, latency_ms=5.0, particles=P, log_posterior=np.zeros(50), modes=modes,
             ))
     return out
 

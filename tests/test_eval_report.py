@@ -12,6 +12,7 @@ import pytest
 from factors.lie import se3_exp
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.eval.ambiguity import label_frames
 from pinpoint_fg.eval.metrics import nll_score
 from pinpoint_fg.eval.report import (
@@ -22,7 +23,6 @@ from pinpoint_fg.eval.report import (
 )
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result.schema import FrameEstimate
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.likelihood import MeasurementModel
 from pinpoint_fg.sim.scenarios import simulate
@@ -66,10 +66,10 @@ def _write_result(out: Path, rec: Recording, method: str, kind: str, disabled: t
             T = r.cam_T_needle_gt.copy()
             T[:3, 3] += OFFSET_M
             P, wt = _particles(kind, T, rng)
-            w.write(FrameEstimate(
+            w.write(Estimate(
                 frame=r.frame, t_s=r.t_s, cam_T_needle=T, q95_trans_m=2e-3,
                 q95_rot_rad=float(np.radians(5.0)), bimodal=False, iterations=3, latency_ms=10.0 + r.frame,
-                particles_T=P, log_posterior=np.zeros(P.shape[0]), weight=wt,
+                particles=P, log_posterior=np.zeros(P.shape[0]), weights=wt,
             ))
     return out
 

@@ -15,8 +15,9 @@ import pytest
 import pinpoint_fg
 from factors.lie import se3_exp
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.result.reader import read_result
-from pinpoint_fg.io.result.schema import ESTIMATE_COLUMNS, PARTICLES_JOURNAL, FrameEstimate
+from pinpoint_fg.io.result.schema import ESTIMATE_COLUMNS, PARTICLES_JOURNAL
 from pinpoint_fg.io.result.writer import ResultWriter
 
 N = 7  # particles
@@ -32,7 +33,7 @@ def make_estimates(n_frames: int = 5, weighted: bool = True, smoothed: bool = Tr
         logp[0] = -np.inf if i == 1 else logp[0]  # a particle of zero posterior is representable
         w = rng.random(N)
         out.append(
-            FrameEstimate(
+            Estimate(
                 frame=k,
                 t_s=k / 30.0,
                 cam_T_needle=P[1],
@@ -41,9 +42,9 @@ def make_estimates(n_frames: int = 5, weighted: bool = True, smoothed: bool = Tr
                 bimodal=bool(i % 2),
                 iterations=int(rng.integers(1, 30)),
                 latency_ms=float(rng.random() * 40),
-                particles_T=P,
+                particles=P,
                 log_posterior=logp,
-                weight=w / w.sum() if weighted else None,
+                weights=w / w.sum() if weighted else None,
                 smoothed=(k - 3, (k - 3) / 30.0, se3_exp(rng.normal(size=6))) if smoothed and i > 0 else None,
                 extra={"reseeded": float(i == 3), "ess": float(rng.random() * N)},
             )
@@ -71,10 +72,10 @@ def assert_matches(res, ests, weighted: bool = True) -> None:
     p = res.particles
     assert p is not None and p.frame.tolist() == res.frame.tolist()
     assert p.cam_T_needle.shape == (F, N, 4, 4) and p.T is p.cam_T_needle
-    np.testing.assert_allclose(p.cam_T_needle, np.stack([e.particles_T for e in ests]), rtol=0, atol=2e-15)
+    np.testing.assert_allclose(p.cam_T_needle, np.stack([e.particles for e in ests]), rtol=0, atol=2e-15)
     np.testing.assert_array_equal(p.log_posterior, np.stack([e.log_posterior for e in ests]))
     if weighted:
-        np.testing.assert_array_equal(p.weight, np.stack([e.weight for e in ests]))
+        np.testing.assert_array_equal(p.weight, np.stack([e.weights for e in ests]))
     else:
         assert p.weight is None
 
@@ -200,16 +201,16 @@ def test_writer_rejects_inconsistent_frames(tmp_path: Path) -> None:
     with open_writer(tmp_path / "r") as w:
         w.write(ests[0])
         with pytest.raises(ValueError, match="N is fixed"):
-            w.write(FrameEstimate(**{**ests[1].__dict__, "particles_T": ests[1].particles_T[:3],
-                                     "log_posterior": ests[1].log_posterior[:3], "weight": ests[1].weight[:3]}))
+            w.write(Estimate(**{**ests[1].__dict__, "particles": ests[1].particles[:3],
+                                     "log_posterior": ests[1].log_posterior[:3], "weights": ests[1].weights[:3]}))
         with pytest.raises(ValueError, match="not greater"):
             w.write(ests[0])
         with pytest.raises(ValueError, match="no weight"):
-            w.write(FrameEstimate(**{**ests[1].__dict__, "weight": None}))
+            w.write(Estimate(**{**ests[1].__dict__, "weights": None}))
         with pytest.raises(ValueError, match="extra keys"):
-            w.write(FrameEstimate(**{**ests[1].__dict__, "extra": {"new": 1.0}}))
+            w.write(Estimate(**{**ests[1].__dict__, "extra": {"new": 1.0}}))
         with pytest.raises(ValueError, match="proper rotation"):
-            w.write(FrameEstimate(**{**ests[1].__dict__, "cam_T_needle": 2 * np.eye(4)}))
+            w.write(Estimate(**{**ests[1].__dict__, "cam_T_needle": 2 * np.eye(4)}))
         w.write(ests[1])
     with pytest.raises(ValueError, match="closed"):
         w.write(ests[2])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from factors.lie import retract, se3_exp
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.posterior.spread import tangent_spread
 from pinpoint_fg.posterior.summary import (
@@ -17,7 +18,6 @@ from pinpoint_fg.posterior.summary import (
     posterior_columns,
     weak_direction,
 )
-from pinpoint_fg.trackers.base import Estimate
 
 S = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 T0 = np.eye(4)

@@ -221,7 +221,7 @@ def modes_from_particles(
 
 
 def modes_of_estimate(est: object) -> tuple[Mode, ...]:
-    """The modes of a tracker's :class:`~pinpoint_fg.trackers.base.Estimate`, dominant first.
+    """The modes of a tracker's :class:`~pinpoint_fg.estimate.Estimate`, dominant first.
 
     The tracker's own ``modes`` when it reports them (MHT; weights renormalised to sum to 1 and
     covariances symmetrised, against rounding in the tracker); a single particle (the MAP method) is one

@@ -1,7 +1,7 @@
 """What every tracker shares: the per-frame estimate, the ``step(observation)`` interface, reporting.
 
 A tracker is fed one :class:`pinpoint_fg.observation.Observation` at a time and returns an
-:class:`Estimate`. The MAP pose, the q95 spread and the tangent covariance are computed the
+:class:`pinpoint_fg.estimate.Estimate`. The MAP pose, the q95 spread and the tangent covariance are computed the
 same way for every method (paper §IV "Uncertainty Estimation"): tangent vectors
 ``xi_i = Log(T_map^-1 T_i)`` of all particles around the MAP particle, the (weighted) 95th
 percentile of ``|v|`` and ``|omega|``, and their weighted covariance.
@@ -10,60 +10,16 @@ percentile of ``|v|`` and ``|omega|``, and their weighted covariance.
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.kinematics_check import KinematicsCheckConfig, KinematicsMonitor, MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.noise import format_robust
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.posterior.spread import tangent_spread
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """A tracker's output for one frame.
-
-    Its result-file counterpart is :class:`pinpoint_fg.io.result.schema.FrameEstimate`, made from it by
-    ``pinpoint_fg.track.to_frame_estimate``: that adds what is judged after the step (the GMM verdict, the
-    modes, the weak direction), turns ``reseeded`` into an extra column and drops ``cov_xi`` (not on disk).
-    The two stay separate types: the writer (io, below the trackers) validates rows in the on-disk names
-    (``particles_T``, ``weight``), and each tracker builds its estimate without the post-step summaries.
-    """
-
-    frame: int
-    """Frame index."""
-    t_s: float
-    """Time stamp, seconds."""
-    cam_T_needle: np.ndarray
-    """(4, 4) MAP pose."""
-    q95_trans_m: float
-    """Weighted 95th percentile of particle translation distances from the MAP, metres."""
-    q95_rot_rad: float
-    """Weighted 95th percentile of particle rotation angles from the MAP, radians."""
-    cov_xi: np.ndarray
-    """(6, 6) weighted covariance of the particles' tangent vectors at the MAP, [omega; v]."""
-    iterations: int
-    """Transport iterations (SVN/SVGD), optimiser iterations (MAP) or 1 (PF)."""
-    latency_ms: float
-    """Wall time of this frame's inference, milliseconds."""
-    particles: np.ndarray
-    """(N, 4, 4) the particle set (N = 1 for MAP)."""
-    log_posterior: np.ndarray
-    """(N,) log-posterior of each particle (up to a constant)."""
-    weights: np.ndarray | None = None
-    """(N,) normalised weights for weighted methods (PF), else None (equal weights)."""
-    smoothed: tuple[int, float, np.ndarray] | None = None
-    """With a window L > 1: (frame, t_s, (4, 4) pose) of the fixed-lag smoothed frame k - L + 1."""
-    reseeded: bool = False
-    """True when every hypothesis was implausible and the particles were re-seeded this frame."""
-    extra: dict = field(default_factory=dict)
-    """Method-specific per-frame numbers (appended as result columns)."""
-    modes: tuple[Mode, ...] | None = None
-    """Posterior modes (multi-hypothesis trackers), dominant first; None when the tracker has none."""
-
 
 #: :func:`implausible` fires when the best hypothesis's root-mean-square whitened residual exceeds this.
 IMPLAUSIBLE_RMS_SIGMA = 5.0

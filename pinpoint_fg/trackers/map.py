@@ -67,12 +67,13 @@ import gtsam
 import numpy as np
 
 from factors.gtsam_factors import MotionFactor, PosePriorFactor
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.kinematics_check import MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.spread import weighted_quantile
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible
+from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible
 from pinpoint_fg.window import RANDOM_WALK_SIGMA
 
 

@@ -102,6 +102,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
@@ -114,7 +115,7 @@ from pinpoint_fg.proposals import (
     polish_with_prior,
     rigid_map,
 )
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible
+from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible
 from pinpoint_fg.trackers.map import MapConfig, MapSmoother, motion_model
 from pinpoint_fg.trackers.mht_branches import (
     Branch,

@@ -31,10 +31,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors.lie import se3_exp
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.init import seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible, summarize
+from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible, summarize
 from pinpoint_fg.window import RANDOM_WALK_SIGMA
 
 #: Particles per batch when evaluating the likelihood: the residual Jacobians it builds scale as

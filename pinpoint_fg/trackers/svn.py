@@ -68,13 +68,14 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from factors.lie import local, se3_exp, se3_right_jacobian
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.posterior.spread import tangent_spread
 from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
-from pinpoint_fg.trackers.base import Estimate, Tracker, TrackerConfig, implausible, summarize
+from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible, summarize
 from pinpoint_fg.trackers.svn_modes import SCALE, Basins, ModeSettings, allot, basins, propose, settle
 from pinpoint_fg.window import Window
 

@@ -6,8 +6,9 @@ crash journal), ``writer`` (:class:`ResultWriter`, frame by frame), ``reader`` (
 (``from pinpoint_fg.io.result import read_result, read_modes``).
 """
 
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_modes, read_result
-from pinpoint_fg.io.result.schema import FrameEstimate, ModeHistory, Result
+from pinpoint_fg.io.result.schema import ModeHistory, Result
 from pinpoint_fg.io.result.writer import ResultWriter
 
-__all__ = ["FrameEstimate", "ModeHistory", "Result", "ResultWriter", "expand_result_dirs", "read_modes", "read_result"]
+__all__ = ["Estimate", "ModeHistory", "Result", "ResultWriter", "expand_result_dirs", "read_modes", "read_result"]

@@ -40,7 +40,7 @@ unit quaternion (w >= 0), read back within ~1e-16 of the matrix written. NaN is 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -73,44 +73,6 @@ MODE_COLUMNS = ("frame", "mode", "weight", *POSE_COLUMNS, *COV_COLUMNS)
 MODE_WEIGHT_SUM_TOL = 1e-6
 #: Row and column indices of the upper-triangle covariance entries, in the order of :data:`COV_COLUMNS`.
 COV_INDICES = np.triu_indices(6)
-
-
-@dataclass(frozen=True, eq=False)
-class FrameEstimate:
-    """What a tracker reports for one frame (one row of every result file), in the result format's names.
-
-    Made from a tracker's :class:`~pinpoint_fg.trackers.base.Estimate` by ``pinpoint_fg.track.to_frame_estimate``
-    (which adds the verdict, the modes and the summary columns); see there why the two types are kept apart.
-    """
-
-    frame: int
-    """Frame index in the recording."""
-    t_s: float
-    """Time stamp, seconds."""
-    cam_T_needle: np.ndarray
-    """MAP pose ``(4, 4)``."""
-    q95_trans_m: float
-    """95th percentile of the particles' translation distance to the MAP, metres (NaN: unknown)."""
-    q95_rot_rad: float
-    """95th percentile of the particles' rotation angle to the MAP, radians (NaN: unknown)."""
-    bimodal: bool
-    """Bimodality verdict of the particle set."""
-    iterations: int
-    """Transport / optimiser iterations spent on this frame."""
-    latency_ms: float
-    """Wall time of the frame's update, milliseconds."""
-    particles_T: np.ndarray
-    """Particle poses ``cam_T_needle``, ``(N, 4, 4)`` (N fixed for a run)."""
-    log_posterior: np.ndarray
-    """Unnormalised log-posterior of each particle, ``(N,)``."""
-    weight: np.ndarray | None = None
-    """Importance weights ``(N,)`` for weighted methods (PF), else None."""
-    smoothed: tuple[int, float, np.ndarray] | None = None
-    """Fixed-lag estimate ``(frame, t_s, cam_T_needle (4, 4))`` of frame k - L + 1, when available."""
-    extra: dict[str, float] = field(default_factory=dict)
-    """More numeric columns for estimates.csv (e.g. ``{"reseeded": 1.0}``)."""
-    modes: tuple[Mode, ...] | None = None
-    """Posterior modes of the frame (written to modes.csv, dominant first), None: no modes.csv rows."""
 
 
 @dataclass(frozen=True, eq=False)

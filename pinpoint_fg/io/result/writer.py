@@ -14,6 +14,7 @@ import numpy as np
 
 import pinpoint_fg
 from factors.geometry import xyz_quat_from_pose
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.recording.writer import atomic_write_text, check_pose
 from pinpoint_fg.io.result.particles import ParticleWriter
 from pinpoint_fg.io.result.schema import (
@@ -32,7 +33,6 @@ from pinpoint_fg.io.result.schema import (
     SMOOTHED_COLUMNS,
     SMOOTHED_CSV,
     TRAJECTORY_TUM,
-    FrameEstimate,
 )
 from pinpoint_fg.posterior.modes import Mode
 
@@ -188,7 +188,7 @@ class ResultWriter:
         atomic_write_text(self.out_dir / RESULT_JSON, text)
 
     # -- per frame -------------------------------------------------------------------------
-    def _check(self, est: FrameEstimate) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    def _check(self, est: Estimate) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         if isinstance(est.frame, bool) or not isinstance(est.frame, int | np.integer) or est.frame < 0:
             raise ValueError(f"frame must be a non-negative integer, got {est.frame!r}")
         f = int(est.frame)
@@ -203,18 +203,18 @@ class ResultWriter:
         it = est.iterations
         if isinstance(it, bool) or not isinstance(it, int | np.integer) or it < 0:
             raise ValueError(f"frame {f}: iterations must be a non-negative integer, got {est.iterations!r}")
-        P = np.asarray(est.particles_T, dtype=float)
+        P = np.asarray(est.particles, dtype=float)
         if P.ndim != 3 or P.shape[1:] != (4, 4) or P.shape[0] < 1:
-            raise ValueError(f"frame {f}: particles_T must have shape (N, 4, 4) with N >= 1, got {P.shape}")
+            raise ValueError(f"frame {f}: particles must have shape (N, 4, 4) with N >= 1, got {P.shape}")
         n = P.shape[0]
         if self._particles.n is not None and n != self._particles.n:
             raise ValueError(f"frame {f}: {n} particles, but this run has N = {self._particles.n} (N is fixed per run)")
         if not np.all(np.isfinite(P)):
-            raise ValueError(f"frame {f}: particles_T contains NaN or infinite values")
+            raise ValueError(f"frame {f}: particles contain NaN or infinite values")
         R = P[:, :3, :3]
         ortho = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
         if np.any(ortho > 1e-6) or np.any(np.linalg.det(R) <= 0):
-            raise ValueError(f"frame {f}: particles_T has rotation blocks that are not proper rotations")
+            raise ValueError(f"frame {f}: particles have rotation blocks that are not proper rotations")
         logp = np.asarray(est.log_posterior, dtype=float)
         if logp.shape != (n,):
             raise ValueError(f"frame {f}: log_posterior must have shape ({n},), got {logp.shape}")
@@ -222,12 +222,12 @@ class ResultWriter:
             raise ValueError(f"frame {f}: log_posterior contains NaN or +inf")
         w = None
         if self.weighted:
-            if est.weight is None:
+            if est.weights is None:
                 raise ValueError(f"frame {f}: this result is weighted but the estimate has no weight")
-            w = np.asarray(est.weight, dtype=float)
+            w = np.asarray(est.weights, dtype=float)
             if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0):
                 raise ValueError(f"frame {f}: weight must be a finite non-negative ({n},) array")
-        elif est.weight is not None:
+        elif est.weights is not None:
             raise ValueError(f"frame {f}: weight given, but the writer was created with weighted=False")
         if est.smoothed is not None and not self.smoothed:
             raise ValueError(f"frame {f}: smoothed estimate given, but the writer has smoothed=False")
@@ -244,7 +244,7 @@ class ResultWriter:
                 )
         return P, logp, w, np.asarray(est.cam_T_needle, dtype=float)
 
-    def write(self, est: FrameEstimate) -> None:
+    def write(self, est: Estimate) -> None:
         """Append one frame to every file (particles first, then the rows), each flushed."""
         if self._closed:
             raise ValueError("ResultWriter is closed")

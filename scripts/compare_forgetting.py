@@ -10,11 +10,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.observe import observe_frame
+from pinpoint_fg.experiments.compare import score_run
+from pinpoint_fg.io.recording import read_recording
 from pinpoint_fg.track import suggested_disable, tracker_config
 from pinpoint_fg.trackers.svn import SvnSettings, SvnTracker
 
@@ -25,19 +22,9 @@ def main(root: Path) -> None:
         for gamma in (0.9, 1.0):
             tracker = SvnTracker(tracker_config(rec, "svn", disable=suggested_disable(run), seed=0),
                                  SvnSettings(forgetting=gamma))
-            kept, err_t, err_r = [], [], []
-            for frame in rec.frames:
-                est = tracker.step(observe_frame(rec, frame))
-                T = frame.cam_T_needle_gt
-                if T is None:
-                    continue
-                e = pose_errors(est.particles, np.broadcast_to(T, est.particles.shape))
-                kept.append(bool(np.any((e.trans_m < 2e-3) & (np.degrees(e.rot_rad) < 10.0))))
-                m = pose_errors(est.cam_T_needle[None], T[None])
-                err_t.append(m.trans_m[0])
-                err_r.append(np.degrees(m.rot_rad[0]))
-            print(f"{run.name:<16} forgetting {gamma}: truth kept {np.mean(kept):6.1%}  "
-                  f"MAP {np.mean(err_t) * 1e3:5.2f} mm {np.mean(err_r):6.1f} deg", flush=True)
+            sc = score_run(rec, tracker)
+            print(f"{run.name:<16} forgetting {gamma}: truth kept {sc.kept:6.1%}  "
+                  f"MAP {sc.trans_mm:5.2f} mm {sc.rot_deg:6.1f} deg", flush=True)
 
 
 if __name__ == "__main__":

@@ -11,12 +11,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from pinpoint_fg.eval.metrics import pose_errors
+from pinpoint_fg.experiments.compare import score_run
 from pinpoint_fg.io.recording import read_recording
-from pinpoint_fg.observe import observe_frame
-from pinpoint_fg.posterior.summary import bimodal_from_modes, modes_of_estimate
 from pinpoint_fg.track import make_tracker, suggested_disable, tracker_config
 
 
@@ -25,21 +21,10 @@ def main(root: Path) -> None:
     for run in sorted(p for p in root.iterdir() if (p / "recording.json").exists()):
         rec = read_recording(run)
         for method in ("svn", "map", "mht"):
-            tracker = make_tracker(method, tracker_config(rec, method, disable=suggested_disable(run), seed=0))
-            err_t, err_r, kept, bimodal = [], [], [], []
-            for frame in rec.frames:
-                est = tracker.step(observe_frame(rec, frame))
-                T = frame.cam_T_needle_gt
-                if T is None:
-                    continue
-                e = pose_errors(est.particles, np.broadcast_to(T, est.particles.shape))
-                kept.append(bool(np.any((e.trans_m < 2e-3) & (np.degrees(e.rot_rad) < 10.0))))
-                m = pose_errors(est.cam_T_needle[None], T[None])
-                err_t.append(m.trans_m[0] * 1e3)
-                err_r.append(np.degrees(m.rot_rad[0]))
-                bimodal.append(bimodal_from_modes(modes_of_estimate(est)))
-            print(f"{run.name:<16} {method:<6} {np.mean(err_t):8.2f} {np.mean(err_r):8.1f} {np.mean(kept):6.1%} "
-                  f"{np.mean(bimodal):8.1%}", flush=True)
+            config = tracker_config(rec, method, disable=suggested_disable(run), seed=0)
+            sc = score_run(rec, make_tracker(method, config))
+            print(f"{run.name:<16} {method:<6} {sc.trans_mm:8.2f} {sc.rot_deg:8.1f} {sc.kept:6.1%} {sc.bimodal:8.1%}",
+                  flush=True)
 
 
 if __name__ == "__main__":

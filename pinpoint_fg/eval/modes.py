@@ -85,7 +85,7 @@ def modes_of_result(res: Result, k: int = MAX_MODES) -> ResultModes:
     return ResultModes(W, peaks, "particles")
 
 
-def _near(T: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
+def near_truth(T: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
     """(..., ) bool: poses T (..., 4, 4) within the truth-kept thresholds of T_gt (broadcast)."""
     e = pose_errors(T, T_gt)
     return (e.trans_m <= TRUTH_KEPT_TRANS_M) & (e.rot_rad <= TRUTH_KEPT_ROT_RAD)
@@ -94,7 +94,7 @@ def _near(T: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
 def truth_kept(res: Result, modes: ResultModes, T_gt: np.ndarray, has_gt: np.ndarray) -> dict[str, float]:
     """``truth_kept_modes_share`` and ``truth_kept_particles_share`` (NaN when nothing to judge)."""
     sel = has_gt & modes.has_modes
-    kept = [bool(np.any(_near(modes.peaks[i], T_gt[i]))) for i in np.nonzero(sel)[0]]
+    kept = [bool(np.any(near_truth(modes.peaks[i], T_gt[i]))) for i in np.nonzero(sel)[0]]
     out = {"truth_kept_modes_share": float(np.mean(kept)) if kept else float("nan")}
     P = res.particles
     if P is None:
@@ -105,7 +105,7 @@ def truth_kept(res: Result, modes: ResultModes, T_gt: np.ndarray, has_gt: np.nda
     if g.size == 0:
         out["truth_kept_particles_share"] = float("nan")
         return out
-    near = _near(P.cam_T_needle[g], T_gt[g][:, None])  # (G, N)
+    near = near_truth(P.cam_T_needle[g], T_gt[g][:, None])  # (G, N)
     out["truth_kept_particles_share"] = float(np.mean(np.any(near, axis=1)))
     return out
 

@@ -211,7 +211,7 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
 
     A mode's evidence from the Gauss-Newton prediction is only as good as its best particle's
     convergence (the transport stops on step size with the whole cloud in view; after a large
-    motion a mode's particles may still be metres of cost from its peak): comparing a polished
+    motion a mode's particles may still be many nats from its peak): comparing a polished
     mode with an unpolished one favours the polished. So every compared mode's best hypothesis
     is moved to its peak (:func:`polish`, batched; written back to the window) and every member
     of a mode carries its mode's polished log-evidence (modes beyond ``max_modes`` keep their

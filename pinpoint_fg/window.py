@@ -345,3 +345,29 @@ def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Windo
     window.prior_W[index] = source.prior_W[source_index]
     window.evidence[index] = source.evidence[source_index]
     window._prior_memo = None
+
+
+def share_books(window: Window, index: np.ndarray | list[int], source_index: np.ndarray | list[int]) -> None:
+    """Hypotheses ``index`` take the window prior and evidence of ``source_index``, keeping their own poses.
+
+    The books of one mode (:func:`pinpoint_fg.trackers.svn_modes.share_mode_books`). The memo of the
+    oldest frame's terms stays valid: only the prior's share of the changed rows is re-evaluated
+    (equal to a fresh evaluation to round-off).
+    """
+    assert window.poses is not None and window.evidence is not None
+    index, source_index = np.asarray(index, dtype=int), np.asarray(source_index, dtype=int)
+    if index.size == 0:
+        return
+    memo = getattr(window, "_prior_memo", None)
+    valid = memo is not None and memo[0] == window._prior_key(window.poses[0])
+    T0 = window.poses[0, index]
+    old = whiten_prior(*res.pose_prior_residual(T0, window.prior_mean[index]), window.prior_W[index])
+    window.prior_mean[index] = window.prior_mean[source_index]
+    window.prior_W[index] = window.prior_W[source_index]
+    window.evidence[index] = window.evidence[source_index]
+    if not valid:
+        window._prior_memo = None
+        return
+    new = whiten_prior(*res.pose_prior_residual(T0, window.prior_mean[index]), window.prior_W[index])
+    patched = tuple(a + (n - o) for a, n, o in zip((m[index] for m in memo[1]), new, old, strict=True))
+    window._prior_memo = (window._prior_key(window.poses[0]), _merged_rows(memo[1], patched, index))

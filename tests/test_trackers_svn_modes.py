@@ -195,3 +195,44 @@ def test_settle_moves_each_compared_modes_best_hypothesis_to_its_peak_and_rescor
     # Gauss-Newton decrement is below 1e-3 nats); the one-step prediction from 3 deg away was off by up to 10 nats
     z_fresh = laplace_terms(fresh, w.evidence[polished])[2]
     assert np.allclose(settled.log_evidence[polished], z_fresh, atol=2e-3)
+
+
+def test_every_member_of_a_settled_mode_takes_its_peaks_books() -> None:
+    """Evidence is kept per mode: after settle, members carry the polished best hypothesis's prior and evidence
+    (each member's own marginalisations, made off the peak by repulsion, would otherwise drift apart by
+    hundreds of nats over a run and let the luckiest member decide the mode's weight)."""
+    from pinpoint_fg.proposals import twin_poses
+    from pinpoint_fg.trackers.svn_modes import settle, share_mode_books
+
+    T, _, arc = _ambiguous_scene()
+    cfg = TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(grasp_perpendicular=False, tip=False, tail=False))
+    lik = FrameLikelihood(Observation(0, 0.0, backbone_px=arc, cam_T_grasper=_grasper(T)), cfg.model)
+    twin = twin_poses(T[None], CAM.K, NEEDLE.radius_m, NEEDLE.tail_angle_rad, NEEDLE.tip_angle_rad)[0]
+    rng = np.random.default_rng(4)
+    off = np.r_[[np.deg2rad(3.0)] * 3, [0.3e-3] * 3]
+    poses = np.concatenate([T @ se3_exp(rng.normal(size=(6, 6)) * off), twin @ se3_exp(rng.normal(size=(6, 6)) * off)])
+    w = Window(1, np.diag(np.r_[[0.02 ** 2] * 3, [0.3e-3 ** 2] * 3]), forgetting=1.0)
+    w.start(poses, lik, FIRST_PRIOR_SIGMA)
+    w.prior_mean[:6], w.prior_mean[6:] = T, twin
+    w.evidence = rng.normal(size=12) * 50.0  # drifted books
+    found = basins(w.newest, w.linearize(), w.evidence)
+    found, polished, _ = settle(w, w.linearize(), found, iters=30)
+    before = w.newest.copy()
+    index = np.arange(12)
+    index[3] = 0  # a pruned hypothesis now copies hypothesis 0
+    changed = share_mode_books(w, found, polished, index)
+    assert np.array_equal(w.newest, before)  # poses are not touched
+    for r in polished:
+        members = np.flatnonzero(found.labels[index] == found.labels[r])
+        assert np.all(w.evidence[members] == w.evidence[r])
+        assert np.all(w.prior_mean[members] == w.prior_mean[r])
+    assert changed == 10
+    # a rep that was pruned gives no books: nothing changes for its mode
+    w2_ev = w.evidence.copy()
+    rep0 = int(polished[0])
+    index2 = np.arange(12)
+    index2[rep0] = int(polished[1])
+    w.evidence = rng.normal(size=12)
+    w2_ev = w.evidence.copy()
+    share_mode_books(w, found, polished[:1], index2)
+    assert np.array_equal(w.evidence, w2_ev)

@@ -228,3 +228,25 @@ def test_resample_keeps_the_oldest_frame_memo_equal_to_a_fresh_evaluation(L: int
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     w.poses[0, 1] = w.poses[0, 1] @ se3_exp(np.full(6, 1e-3))  # a moved pose misses the memo
     assert w._prior_memo[0] != w._prior_key(w.poses[0])
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_share_books_copies_prior_and_evidence_and_keeps_the_memo_equal_to_a_fresh_evaluation(L: int) -> None:
+    from pinpoint_fg.window import share_books
+
+    rng = np.random.default_rng(25)
+    w, _ = _window(L, 8, rng, frames=4)
+    w.evidence = rng.normal(size=8) * 10.0
+    w.linearize()
+    poses = w.poses.copy()
+    share_books(w, [1, 2, 6], [0, 0, 5])
+    assert np.array_equal(w.poses, poses)  # own poses kept
+    for dst, src in ((1, 0), (2, 0), (6, 5)):
+        assert np.array_equal(w.prior_mean[dst], w.prior_mean[src])
+        assert np.array_equal(w.prior_W[dst], w.prior_W[src])
+        assert w.evidence[dst] == w.evidence[src]
+    assert w._prior_memo is not None and w._prior_memo[0] == w._prior_key(w.poses[0])  # patched, not dropped
+    memo = w._unary(0, w.poses[0])
+    fresh = _fresh_copy(w)._unary(0, w.poses[0])
+    for a, b in zip(memo, fresh, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())

@@ -76,7 +76,16 @@ from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.posterior.spread import tangent_spread
 from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible, summarize
-from pinpoint_fg.trackers.svn_modes import SCALE, Basins, ModeSettings, allot, basins, propose, settle
+from pinpoint_fg.trackers.svn_modes import (
+    SCALE,
+    Basins,
+    ModeSettings,
+    allot,
+    basins,
+    propose,
+    settle,
+    share_mode_books,
+)
 from pinpoint_fg.window import Window
 
 #: Weak prior on the very first pose of each hypothesis: [omega x3 (rad), v x3 (m)].
@@ -323,6 +332,7 @@ class SvnTracker(Tracker):
         if self._lin is None:
             self._lin = self.window.linearize()
         found = basins(self.window.newest, self._lin, self.window.evidence, self.svn.modes)
+        polished = np.zeros(0, dtype=int)
         if self.svn.map_polish_iters > 0:  # every compared mode's best hypothesis moved to its peak
             found, polished, lin_r = settle(self.window, self._lin, found, self.svn.map_polish_iters,
                                             self.svn.polish_decrement, 2 * self.svn.modes.max_modes)
@@ -333,6 +343,8 @@ class SvnTracker(Tracker):
             i = int(np.argmin(value))
         index = self._prune(np.where(found.converged, found.log_evidence, np.inf), value)
         modes = self._modes(found, index, i)
+        if self.svn.modes.shared_books:
+            share_mode_books(self.window, found, polished, index)
         latency_ms = 1e3 * (time.perf_counter() - t0)
         self.frames_seen += 1
         self._times.append((observation.frame, observation.t_s))

@@ -64,7 +64,7 @@ from factors.lie import local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.proposals import mode_proposals
 from pinpoint_fg.stein import floor_hessians
-from pinpoint_fg.window import Linearization, Window, copy_hypotheses
+from pinpoint_fg.window import Linearization, Window, copy_hypotheses, share_books
 
 #: Kernel scale S of the scaled tangent units: [omega x3 (rad), v x3 (m)] (svn.py's default).
 SCALE = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
@@ -92,6 +92,9 @@ class ModeSettings:
     """Levenberg-Marquardt steps that polish each proposal on its window."""
     max_candidates: int = 6
     """At most this many screened proposals (the lowest predicted cost first) are polished per frame."""
+    shared_books: bool = True
+    """After each frame every member of a settled mode takes its polished peak's window prior and evidence
+    (:func:`share_mode_books`; False: each hypothesis keeps its own)."""
 
 
 @dataclass(frozen=True)
@@ -231,6 +234,24 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
     converged = found.converged[found.reps].copy()
     converged[chosen] = True
     return Basins(mode_z[found.labels], peaks, found.labels, found.reps, converged[found.labels]), reps, lin_r
+
+
+def share_mode_books(window: Window, found: Basins, reps: np.ndarray, index: np.ndarray | None = None) -> int:
+    """Every member of a settled mode takes its polished best hypothesis's window prior and evidence.
+
+    ``reps``: the settled hypotheses (:func:`settle`); ``index`` (N,): the copy map of a pruning since
+    ``found`` was computed (identity if None). Returns how many hypotheses changed books.
+    """
+    N = window.newest.shape[0]
+    index = np.arange(N) if index is None else np.asarray(index)
+    labels = found.labels[index]
+    source = np.full(N, -1)
+    for r in np.asarray(reps, dtype=int):
+        if index[r] == r:  # the rep survived the pruning
+            source[labels == found.labels[r]] = r
+    members = np.flatnonzero((source >= 0) & (source != np.arange(N)))
+    share_books(window, members, source[members])
+    return int(members.size)
 
 
 @dataclass(frozen=True)

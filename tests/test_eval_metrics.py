@@ -172,13 +172,15 @@ def test_summarize_errors_hand_case() -> None:
     sig = 2.0 / Z_975
     nll = [0.5 * math.log(2 * math.pi * sig**2) + x**2 / (2 * sig**2) for x in (1.0, 3.0)]
     assert s["nlls_trans"] == pytest.approx(np.mean(nll))
+    assert s["coverage_trans"] == pytest.approx(0.5)  # 1 mm within 2, 3 mm not
     # rotation q95 is missing on frame 1: only frame 0 (10 deg inside [0, 15]) -> IS = 15
     assert s["uncertainty_frames_rot"] == 1
     assert s["rot_q95_deg"] == pytest.approx(15.0)
     assert s["is_rot"] == pytest.approx(15.0)
+    assert s["coverage_rot"] == 1.0
     # without q95 the uncertainty keys are NaN, accuracy keys unchanged
     s0 = summarize_errors(e, mask=mask)
-    assert math.isnan(s0["nlls_rot"]) and math.isnan(s0["is_trans"])
+    assert math.isnan(s0["nlls_rot"]) and math.isnan(s0["is_trans"]) and math.isnan(s0["coverage_rot"])
     assert s0["trans_mean_mm"] == pytest.approx(2.0)
     for key in ("trans_z_std_mm", "rot_x_std_deg", "rot_q95_deg", "nlls_trans"):
         assert key in s0

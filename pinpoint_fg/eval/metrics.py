@@ -188,7 +188,8 @@ def summarize_errors(
     (``uncertainty_frames_trans`` / ``_rot`` count them; NaN when none or when q95 is ``None``):
     ``trans_q95_mm``, ``rot_q95_deg`` (mean predicted q95), ``nlls_trans``, ``nlls_rot`` (mean NLL-S
     with ``sigma = q95 / 1.96``, in mm / deg), ``is_trans``, ``is_rot`` (mean interval score of
-    ``[0, q95]`` at ``alpha``, in mm / deg).
+    ``[0, q95]`` at ``alpha``, in mm / deg), ``coverage_trans``, ``coverage_rot`` (share of those frames
+    whose error is within the predicted q95: 0.95 for a calibrated q95).
     """
     F = np.shape(errors.trans_m)[0] if np.ndim(errors.trans_m) else 1
     trans = np.reshape(np.asarray(errors.trans_m, dtype=float), (F,))
@@ -231,10 +232,12 @@ def summarize_errors(
             out[f"{key}_q95_{unit}"] = float(np.mean(qq))
             out[f"nlls_{key}"] = float(np.mean(nll))
             out[f"is_{key}"] = float(np.mean(isc))
+            out[f"coverage_{key}"] = float(np.mean(e <= qq))
         else:
             out[f"{key}_q95_{unit}"] = float("nan")
             out[f"nlls_{key}"] = float("nan")
             out[f"is_{key}"] = float("nan")
+            out[f"coverage_{key}"] = float("nan")
     return out
 
 

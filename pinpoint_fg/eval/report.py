@@ -82,7 +82,7 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "trans_x_mean_mm", "trans_x_std_mm", "trans_y_mean_mm", "trans_y_std_mm",
     "trans_z_mean_mm", "trans_z_std_mm",
     "rot_x_mean_deg", "rot_x_std_deg", "rot_y_mean_deg", "rot_y_std_deg", "rot_z_mean_deg", "rot_z_std_deg",
-    "trans_q95_mm", "rot_q95_deg", "nlls_trans", "nlls_rot", "is_trans", "is_rot",
+    "trans_q95_mm", "rot_q95_deg", "nlls_trans", "nlls_rot", "is_trans", "is_rot", "coverage_trans", "coverage_rot",
     "bimodal_share", "truth_in_dominant_share", "bimodal_frames",
     "ambiguous_frames", "clear_frames", "bimodal_ambiguous_rate", "bimodal_clear_rate",
     "bimodal_modes_share", "truth_kept_modes_share", "truth_kept_particles_share", "reference",

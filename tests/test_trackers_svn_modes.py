@@ -236,3 +236,33 @@ def test_every_member_of_a_settled_mode_takes_its_peaks_books() -> None:
     w2_ev = w.evidence.copy()
     share_mode_books(w, found, polished[:1], index2)
     assert np.array_equal(w.evidence, w2_ev)
+
+
+def test_a_proposal_whose_predicted_peak_is_a_held_mode_is_not_polished(monkeypatch) -> None:
+    """A candidate 12 deg from the mode, inside its basin (one Gauss-Newton step lands on the mode's peak), is the
+    mode itself: dropped after the batched linearisation, never polished, nothing admitted. One 50 deg away (the other
+    circle) is not dropped by that test."""
+    from pinpoint_fg.proposals import twin_poses
+    from pinpoint_fg.trackers import svn_modes
+
+    T, _, arc = _ambiguous_scene()
+    cfg = TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(grasp_perpendicular=False, tip=False, tail=False))
+    lik = FrameLikelihood(Observation(0, 0.0, backbone_px=arc, cam_T_grasper=_grasper(T)), cfg.model)
+    w = Window(1, np.diag(np.r_[[0.02 ** 2] * 3, [0.3e-3 ** 2] * 3]), forgetting=1.0)
+    w.start(T @ se3_exp(np.random.default_rng(5).normal(size=(8, 6)) * 0.2 * SCALE), lik, FIRST_PRIOR_SIGMA)
+    w.prior_mean[:] = T
+    lin = w.linearize()
+    found = basins(w.newest, lin, w.evidence)
+    assert found.reps.shape == (1,)
+    polished: list[int] = []
+    real_polish = svn_modes.polish
+    monkeypatch.setattr(svn_modes, "polish", lambda sub, lin, iters, *a: polished.append(sub.newest.shape[0])
+                        or real_polish(sub, lin, iters, *a))
+    near_pose = T @ se3_exp(np.r_[np.deg2rad(12.0) / np.sqrt(2), np.deg2rad(12.0) / np.sqrt(2), 0, 0, 0, 0])
+    monkeypatch.setattr(svn_modes, "mode_proposals", lambda *a, **k: near_pose[None])
+    out = svn_modes.propose(w, lin, found, lik, ModeSettings(screen_nats=1e9))
+    assert out.screened == 1 and out.windows is None and polished == []
+    twin = twin_poses(T[None], CAM.K, NEEDLE.radius_m, NEEDLE.tail_angle_rad, NEEDLE.tip_angle_rad)[0]
+    monkeypatch.setattr(svn_modes, "mode_proposals", lambda *a, **k: twin[None])
+    svn_modes.propose(w, lin, found, lik, ModeSettings(screen_nats=1e9))
+    assert polished and polished[0] == 1  # the other circle is polished

@@ -39,7 +39,9 @@ every frame). A candidate is its parent's window with the newest pose replaced: 
 window prior and evidence stay the parent's, so switching mode pays the motion model's price
 for the jump (a proposal does not inherit the parent's history for free; no handicap is
 needed). Candidates whose Gauss-Newton-predicted cost ``m`` exceeds the best mode's by more
-than ``screen_nats`` are dropped after one batched linearisation (under the per-frame process
+than ``screen_nats``, or whose predicted peak (step not clipped) is a held mode's (the frame's
+own circles usually are: they fall just outside ``separation`` of the mode's pose but inside its
+basin), are dropped after one batched linearisation (under the per-frame process
 noise a 180 deg flip costs thousands of nats, so on clear frames nothing is polished); the rest
 (at most ``max_candidates``, the most promising first) are polished by Levenberg-Marquardt on
 their windows (:func:`polish`), deduplicated against
@@ -290,9 +292,13 @@ def propose(window: Window, lin: Linearization, found: Basins, lik: FrameLikelih
     cand = window.subset(parents)
     cand.poses[-1] = np.concatenate(poses)
     lin_c = cand.linearize()
-    _, m_c, _ = laplace_terms(lin_c, cand.evidence, settings.max_step)
+    step_p, m_c, _ = laplace_terms(lin_c, cand.evidence, settings.max_step)
     _, m_modes, _ = laplace_terms(lin.subset(found.reps), window.evidence[found.reps], settings.max_step)
-    keep = np.flatnonzero(np.isfinite(m_c) & (m_c <= np.min(m_modes) + settings.screen_nats))
+    # a candidate whose (unclipped) predicted peak is a held mode's is that mode's basin: nothing to polish
+    unclipped = np.linalg.norm(step_p / SCALE, axis=1) < settings.max_step
+    held = np.min(scaled_distance((cand.newest @ se3_exp(step_p))[:, None], all_peaks[None]), axis=1)
+    known = unclipped & (held < settings.separation)
+    keep = np.flatnonzero(np.isfinite(m_c) & (m_c <= np.min(m_modes) + settings.screen_nats) & ~known)
     keep = keep[np.argsort(m_c[keep], kind="stable")[: settings.max_candidates]]
     if keep.size == 0:
         return Admitted(None, np.zeros(0), n_prop)

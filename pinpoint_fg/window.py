@@ -58,6 +58,7 @@ from pinpoint_fg.elimination import (
     whiten_prior,
 )
 from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
+from pinpoint_fg.relinearize import FrameAnchors
 
 #: Random-walk noise per frame when the motion model is off or kinematics are missing:
 #: [omega (rad) x3, v (m) x3] = 5 deg, 1 mm (the particle filter's random walk, DESIGN.md).
@@ -78,12 +79,22 @@ def _merged_rows(full: tuple[np.ndarray, ...], part: tuple[np.ndarray, ...], ind
 class Window:
     """The sliding windows of all hypotheses (see module docstring)."""
 
-    def __init__(self, length: int, process_cov: np.ndarray, forgetting: float = 0.9) -> None:
-        """``process_cov``: per-frame covariance ``Q`` (6x6, ``[omega; v]``) of the motion residual."""
+    def __init__(self, length: int, process_cov: np.ndarray, forgetting: float = 0.9,
+                 relin_threshold: float = 0.0) -> None:
+        """``process_cov``: per-frame covariance ``Q`` (6x6, ``[omega; v]``) of the motion residual.
+
+        ``relin_threshold``: the older frames' measurement terms are reused from their last evaluation
+        while their poses moved less than this times (5 deg, 1 mm) per component
+        (:mod:`pinpoint_fg.relinearize`); 0 re-linearises every term exactly on every call.
+        """
         if int(length) < 1:
             raise ValueError(f"window length must be >= 1, got {length}")
         if not 0.0 <= forgetting <= 1.0:
             raise ValueError(f"forgetting must be in [0, 1], got {forgetting}")
+        if not (np.isfinite(relin_threshold) and relin_threshold >= 0.0):
+            raise ValueError(f"relin_threshold must be finite and >= 0, got {relin_threshold}")
+        self.relin_threshold = float(relin_threshold)
+        self._anchors = FrameAnchors()
         self.length = int(length)
         self.forgetting = float(forgetting)
         self.evidence: np.ndarray | None = None  # (N,) accumulated marginalised cost
@@ -126,6 +137,7 @@ class Window:
         self.evidence = np.zeros(T.shape[0])
         W = np.diag(1.0 / np.asarray(prior_sigma, dtype=float))
         self.prior_W = np.broadcast_to(W, (T.shape[0], 6, 6)).copy()
+        self._anchors.clear()
 
     def reset_newest(self, cam_T_needle: np.ndarray, prior_sigma: np.ndarray) -> None:
         """Re-seed: keep only the newest frame, at new poses with a fresh weak prior."""
@@ -187,8 +199,38 @@ class Window:
             self._prior_memo = (key, (nll, g, H))
         return nll, g, H
 
+    def _relin_unaries(self) -> tuple[list, list, list]:
+        """The poses' own terms (:meth:`_unary`) with the older frames' from :mod:`pinpoint_fg.relinearize`."""
+        assert self.poses is not None
+        L = self.size
+        self._anchors.keep_only(self.frames)
+        v, g, H = self._anchors.terms(self.frames[:-1], self.poses[:-1], self.relin_threshold)
+        pv, pg, pH = self._prior_terms(self.poses[0])
+        vals, gs, Hs = list(v), list(g), list(H)
+        vals[0], gs[0], Hs[0] = vals[0] + pv, gs[0] + pg, Hs[0] + pH
+        v, g, H = self._unary(L - 1, self.poses[-1])
+        return vals + [v], gs + [g], Hs + [H]
+
     def linearize(self) -> Linearization:
         """Gauss-Newton model of every window, eliminated onto the newest pose (see module docstring)."""
+        assert self.poses is not None
+        L = self.size
+        if L > 1 and self.relin_threshold > 0:
+            vals, gs, Hs = self._relin_unaries()
+        else:
+            vals, gs, Hs = self._exact_unaries()
+        newest_part = vals[-1]
+        Bs: list[np.ndarray] = []
+        if L > 1:
+            motion = chain_motion_terms(self.poses, self.deltas, self.delta_W)
+            newest_part = newest_part + motion[0][-1]
+            vals, gs, Hs, Bs = add_chain_motion(vals, gs, Hs, motion)
+        window_value = np.sum(vals, axis=0)
+        c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs)
+        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
+
+    def _exact_unaries(self) -> tuple[list, list, list]:
+        """Every pose's own terms (:meth:`_unary`), the frames no memo holds in one batched evaluation."""
         assert self.poses is not None
         L = self.size
         if L > 1:
@@ -203,15 +245,7 @@ class Window:
             vals.append(v)
             gs.append(g)
             Hs.append(H)
-        newest_part = vals[-1]
-        Bs: list[np.ndarray] = []
-        if L > 1:
-            motion = chain_motion_terms(self.poses, self.deltas, self.delta_W)
-            newest_part = newest_part + motion[0][-1]
-            vals, gs, Hs, Bs = add_chain_motion(vals, gs, Hs, motion)
-        window_value = np.sum(vals, axis=0)
-        c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs)
-        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
+        return vals, gs, Hs
 
     def move_newest(self, step: np.ndarray, lin: Linearization) -> None:
         """Retract the newest poses by ``step (N, 6)`` and the older ones by back-substitution.
@@ -270,6 +304,7 @@ class Window:
         self.frames = self.frames[1:]
         self.deltas = self.deltas[1:]
         self.delta_W = self.delta_W[1:]
+        self._anchors.keep_only(self.frames)
 
     def subset(self, index: np.ndarray | list[int]) -> Window:
         """A window over hypotheses ``index`` only: copies of their poses, priors and evidence, the same frames.
@@ -286,6 +321,7 @@ class Window:
         sub.evidence = None if self.evidence is None else self.evidence[index].copy()
         sub.frames, sub.deltas, sub.delta_W = list(self.frames), list(self.deltas), list(self.delta_W)
         sub._prior_memo = None
+        sub._anchors = self._anchors.subset(index)
         return sub
 
     def adopt(self, sub: Window, index: np.ndarray | list[int]) -> None:
@@ -302,6 +338,7 @@ class Window:
         valid = (memo is not None and sub_memo is not None and memo[0] == self._prior_key(self.poses[0])
                  and sub_memo[0] == sub._prior_key(sub.poses[0]))
         self.poses[:, index] = sub.poses
+        self._anchors.copy_rows(index, sub._anchors, np.arange(index.shape[0]))
         if not valid:
             self._prior_memo = None
             return
@@ -321,6 +358,7 @@ class Window:
         self.prior_W = self.prior_W[index]
         if self.evidence is not None:
             self.evidence = self.evidence[index]
+        self._anchors = self._anchors.subset(index)
         self._prior_memo = (self._prior_key(self.poses[0]), _reindexed_rows(memo[1], index)) if valid else None
 
 
@@ -345,3 +383,4 @@ def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Windo
     window.prior_W[index] = source.prior_W[source_index]
     window.evidence[index] = source.evidence[source_index]
     window._prior_memo = None
+    window._anchors.copy_rows(index, source._anchors, source_index)

@@ -185,9 +185,12 @@ def older_value(lin: Linearization, prev_T: np.ndarray, newest_T: np.ndarray, de
     poses ``x_{L-2}``, ``x_{L-1}``; ``delta``, ``W`` the last motion and its whitening.
     """
     dprev0 = -np.einsum("nij,nj->ni", lin.cond_inv[-1], lin.cond_g[-1])
-    r0 = res.motion_residual(prev_T @ se3_exp(dprev0), newest_T, delta, False)[0]
-    r1 = res.motion_residual(prev_T, newest_T, delta, False)[0]
-    return lin.value - lin.newest_part - motion_value(r0, W) + motion_value(r1, W)
+    # both residuals in one call: (x_{L-2} at its optimum, x_{L-2} as it is) against the newest pose
+    r = res.motion_residual(np.concatenate([prev_T @ se3_exp(dprev0), prev_T]), np.concatenate([newest_T, newest_T]),
+                            delta, False)[0]
+    v = motion_value(r, W)
+    n = prev_T.shape[0]
+    return lin.value - lin.newest_part - v[:n] + v[n:]
 
 
 def marginal_prior(v0: np.ndarray, g0: np.ndarray, H0: np.ndarray,

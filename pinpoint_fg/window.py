@@ -254,13 +254,11 @@ class Window:
         their Gauss-Newton conditional optimum given the newest (the smoothing step).
         """
         assert self.poses is not None
-        d = np.asarray(step, dtype=float)
-        new = [None] * self.size
-        new[-1] = self.poses[-1] @ se3_exp(d)
+        d = np.empty(self.poses.shape[:2] + (6,))
+        d[-1] = step
         for j in range(self.size - 2, -1, -1):
-            d = conditional_step(lin.cond_inv[j], lin.cond_g[j], lin.cond_B[j], d)
-            new[j] = self.poses[j] @ se3_exp(d)
-        self.poses = np.stack(new, axis=0)
+            d[j] = conditional_step(lin.cond_inv[j], lin.cond_g[j], lin.cond_B[j], d[j + 1])
+        self.poses = self.poses @ se3_exp(d)  # all L retractions in one call
 
     def newest_value(self, cam_T_newest: np.ndarray, lin: Linearization) -> np.ndarray:
         """Negative log-posterior (N,) if the newest poses were ``cam_T_newest`` (older at their conditional optimum).

@@ -1,0 +1,132 @@
+"""The relinearisation threshold (pinpoint_fg/relinearize.py): exact when every moved pose is re-evaluated,
+second-order close to the exact linearisation below the threshold, and kept row-consistent by subset,
+adopt, resample and copy_hypotheses."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from factors.lie import se3_exp
+from pinpoint_fg.relinearize import RELIN_SCALE
+from pinpoint_fg.window import Window, copy_hypotheses
+from tests.test_window import _window
+
+
+def _with_threshold(w: Window, threshold: float) -> Window:
+    """An independent copy of ``w`` (same frames, own poses and anchors) with ``threshold``."""
+    c = copy.copy(w)
+    c.poses, c.prior_mean, c.prior_W = w.poses.copy(), w.prior_mean.copy(), w.prior_W.copy()
+    c.evidence = w.evidence.copy()
+    c._prior_memo = None
+    c._anchors = type(w._anchors)()
+    c.relin_threshold = threshold
+    return c
+
+
+def _assert_lin_close(a, b, rtol: float) -> None:
+    for x, y in ((a.value, b.value), (a.grad, b.grad), (a.hess, b.hess), (a.window_value, b.window_value)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=rtol * max(1.0, float(np.max(np.abs(y)))))
+
+
+def _transport_like(w: Window, rng: np.random.Generator, steps: int, size: float) -> list:
+    """Linearise and move the newest poses (older ones by back-substitution) ``steps`` times; the models."""
+    out = []
+    for _ in range(steps):
+        lin = w.linearize()
+        out.append(lin)
+        w.move_newest(rng.normal(size=(w.newest.shape[0], 6)) * size * RELIN_SCALE, lin)
+    out.append(w.linearize())
+    return out
+
+
+@pytest.mark.parametrize("L", [2, 4])
+def test_tiny_threshold_equals_the_exact_linearisation(L: int) -> None:
+    """Every pose that moved at all is re-evaluated: the anchored path is the exact path (to 1e-9)."""
+    w, _ = _window(L, 12, np.random.default_rng(1), frames=L + 1)
+    exact, anchored = _with_threshold(w, 0.0), _with_threshold(w, 1e-15)
+    lin_e = _transport_like(exact, np.random.default_rng(2), 4, 0.3)
+    lin_a = _transport_like(anchored, np.random.default_rng(2), 4, 0.3)
+    for a, e in zip(lin_a, lin_e, strict=True):
+        _assert_lin_close(a, e, 1e-9)
+    np.testing.assert_allclose(anchored.poses, exact.poses, rtol=0, atol=1e-12)
+
+
+def test_threshold_zero_is_the_exact_path_and_negative_is_rejected() -> None:
+    w, _ = _window(3, 6, np.random.default_rng(3), frames=4)
+    assert w.relin_threshold == 0.0
+    with pytest.raises(ValueError, match="relin_threshold"):
+        Window(3, np.eye(6), relin_threshold=-0.1)
+    zero = _with_threshold(w, 0.0)
+    zero.linearize()
+    assert not zero._anchors.anchors  # the exact path: nothing anchored
+    # the same code path as a window without the setting (memo vs fresh batched evaluation: round-off only)
+    _assert_lin_close(zero.linearize(), w.linearize(), 1e-12)
+
+
+def test_reused_terms_are_second_order_close_to_the_exact_ones() -> None:
+    """Below the threshold the older frames' terms come from the anchor's quadratic model: the window value's
+    error shrinks quadratically with the size of the moves, the gradient's linearly (the Gauss-Newton information
+    omits the residuals' curvature, which a re-evaluated gradient includes)."""
+    w, _ = _window(4, 10, np.random.default_rng(4), frames=5)
+    errors, value_errors = [], []
+    for size in (0.2, 0.02):
+        exact, anchored = _with_threshold(w, 0.0), _with_threshold(w, 1e3)  # never re-evaluated after the first
+        anchored.linearize()  # anchors at the current poses
+        move = se3_exp(np.random.default_rng(5).normal(size=w.poses.shape[:2] + (6,)) * size * RELIN_SCALE)
+        exact.poses = exact.poses @ move
+        anchored.poses = anchored.poses @ move
+        a, e = anchored.linearize(), exact.linearize()
+        assert np.all(anchored._anchors.anchors[w.frames[0]][0] == w.poses[0])  # still at the old poses
+        assert not np.array_equal(a.grad, e.grad)  # the reuse is an approximation
+        errors.append(float(np.max(np.abs(a.grad - e.grad)) / np.max(np.abs(e.grad))))
+        value_errors.append(float(np.max(np.abs(a.window_value - e.window_value))))
+    assert errors[1] < errors[0] / 5.0 and errors[1] < 1e-3, errors
+    assert value_errors[1] < value_errors[0] / 30.0 and value_errors[1] < 1.0, value_errors
+
+
+def test_subset_adopt_resample_and_copies_keep_anchor_rows() -> None:
+    """A subset's model equals the full window's rows; writing back, resampling and copying rows keep the anchors
+    attached to their hypotheses (the anchored model equals a fresh anchored window's to 1e-9)."""
+    w, _ = _window(3, 8, np.random.default_rng(6), frames=4)
+    w = _with_threshold(w, 0.05)
+    rng = np.random.default_rng(7)
+    _transport_like(w, rng, 2, 0.01)
+    full = w.linearize()
+    idx = np.array([5, 1, 6])
+    sub = w.subset(idx)
+    _assert_lin_close(sub.linearize(), full.subset(idx), 1e-9)
+    sub.move_newest(rng.normal(size=(3, 6)) * 0.01 * RELIN_SCALE, sub.linearize())
+    lin_sub = sub.linearize()
+    w.adopt(sub, idx)
+    _assert_lin_close(w.linearize().subset(idx), lin_sub, 1e-9)
+    order = np.array([7, 7, 0, 1, 2, 3, 4, 5])
+    before = w.linearize()
+    w.resample(order)
+    _assert_lin_close(w.linearize(), before.subset(order), 1e-9)
+    copy_hypotheses(w, [0], w.subset([4]), [0])
+    _assert_lin_close(w.linearize().subset([0]), w.linearize().subset([4]), 1e-9)
+    # every anchored term is a real evaluation at its anchor pose
+    f = w.frames[0]
+    T0, v0, g0, H0 = w._anchors.anchors[f]
+    v, g, H = f.gauss_newton(T0)
+    np.testing.assert_allclose(v0, v, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(g0, g, rtol=0, atol=1e-9 * np.max(np.abs(g)))
+    np.testing.assert_allclose(H0, H, rtol=0, atol=1e-9 * np.max(np.abs(H)))
+
+
+def test_marginalisation_drops_anchors_and_stays_exact() -> None:
+    """Sliding drops the marginalised frame's anchors; the evidence is the exact path's."""
+    rng = np.random.default_rng(8)
+    w, obs = _window(2, 6, rng, frames=3)
+    exact, anchored = _with_threshold(w, 0.0), _with_threshold(w, 0.5)
+    for x in (exact, anchored):
+        x.move_newest(np.full((6, 6), 1e-3), x.linearize())
+    anchored.linearize()
+    frame = w.frames[-1]
+    for x in (exact, anchored):
+        x.push(frame, np.eye(4) @ se3_exp(np.full(6, 1e-4)), use_motion=True)
+    assert set(anchored._anchors.anchors) <= set(anchored.frames)
+    np.testing.assert_allclose(anchored.evidence, exact.evidence, rtol=0, atol=1e-9 * np.max(np.abs(exact.evidence)))

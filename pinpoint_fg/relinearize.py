@@ -1,28 +1,36 @@
-"""Relinearisation threshold for a window's older frames (iSAM2-style fluid relinearisation), batched over particles.
+"""Relinearisation threshold for a window's older poses (iSAM2-style fluid relinearisation), batched over particles.
 
 During SVN's transport the older poses of every window move only by back-substitution, by about
 the newest pose's step and less as it converges, yet :meth:`pinpoint_fg.window.Window.linearize`
-would re-evaluate their frames' measurement terms (residuals, Jacobians, robust weights: the
-conic's 200 pixels per frame) on every iteration. :class:`FrameAnchors` keeps, per older frame
-and per hypothesis, the exact Gauss-Newton terms ``(v0, g0, H0)`` at the pose ``T0`` they were
-last evaluated at (the *anchor*). At a pose ``T = T0 Exp(d)``, ``d = Log(T0^-1 T)`` (right chart),
-the frame's terms are taken from the anchor's quadratic model
+would re-evaluate every term that touches them — their frames' measurements (the conic's 200
+pixels per frame), the window prior, the motion terms between them — on every call, and sweep
+the whole chain again. At ~50 particles the per-call overhead of those evaluations, not their
+arithmetic, is what a window of L poses costs over one of a single pose.
 
-    v = v0 + g0^T d + 1/2 d^T H0 d,    g = g0 + H0 d,    H = H0,
+:class:`ChainAnchor` keeps, per hypothesis, the Gauss-Newton model of the window's **older part**
+— the terms that involve only ``x_0 .. x_{L-2}``: their frames, the prior on ``x_0`` and the
+motion terms among them — exactly evaluated at the poses ``A_j`` where it was last linearised
+(the *anchor*): a value ``V``, gradient ``G`` and block-tridiagonal information (diagonal blocks
+``Hd_j``, couplings ``Bo_j``). At the current poses ``x_j = A_j Exp(d_j)`` the older part is
+that quadratic model,
 
-as long as every component of ``d`` is below ``threshold`` times :data:`RELIN_SCALE` (5 deg, 1 mm:
-the kernel's and the random walk's scale); a hypothesis whose pose moved further is re-evaluated
-exactly and re-anchored there. (iSAM2 does the same per variable, with the linear delta kept
-instead of the value re-evaluated; GTSAM's default threshold is 0.1 in rad and m, far coarser.)
+    value = V + G^T d + 1/2 d^T H d,    gradient = G + H d,    information = H,
+
+as long as every component of every ``d_j`` of that hypothesis is below ``threshold`` times
+:data:`RELIN_SCALE` (5 deg, 1 mm: the kernel's and the random walk's scale); a hypothesis whose
+older poses moved further is re-linearised exactly and re-anchored there. The newest frame and
+the last motion term (which the Stein step moves directly) are always exact. (iSAM2 does the
+same per variable, keeping the linear system of the variables it does not relinearise; GTSAM's
+default threshold is 0.1 rad / 0.1 m, far coarser.)
 
 Decisions where the literature is silent:
 
-* Only the older frames' **measurement** terms are reused. The newest frame (which the Stein
-  step moves directly), the window prior and the motion terms (cheap: one batched call for the
-  whole chain) are always evaluated exactly, and marginalisation evaluates the oldest frame
-  exactly at its final pose, so the window's evidence is exact.
-* The gradient is not transported between the two tangent spaces at ``T0`` and ``T`` (a
-  relative change of order ``|d|``, below the threshold).
+* Marginalisation evaluates the oldest frame, prior and motion term exactly at the final poses
+  (:meth:`pinpoint_fg.window.Window.push`), so the window's evidence is exact.
+* The gradient is not transported between the tangent spaces at ``A_j`` and ``x_j`` (a relative
+  change of order ``|d|``, below the threshold). Being the Gauss-Newton model, the reused
+  gradient also omits the residuals' curvature, so its error is first order in ``|d|`` and the
+  value's second order (tested).
 * ``threshold = 0`` disables the reuse: :meth:`pinpoint_fg.window.Window.linearize` then takes its
   exact path (tested equal to it).
 """
@@ -31,76 +39,115 @@ from __future__ import annotations
 
 import numpy as np
 
+from factors import residuals as res
 from factors.lie import local
+from pinpoint_fg.elimination import chain_motion_terms, inv_psd, whiten_prior
 from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
 
 #: Scale of the relinearisation threshold: [omega x3 (rad), v x3 (m)] = 5 deg, 1 mm.
 RELIN_SCALE = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 
-Anchor = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # T0 (N, 4, 4), v0 (N,), g0 (N, 6), H0 (N, 6, 6)
+#: Axis of the hypotheses in each anchored array: A (L-1, N, 4, 4), V (N,), G (L-1, N, 6), Hd (L-1, N, 6, 6),
+#: Bo (L-2, N, 6, 6), the sweep's Hinv (L-2, N, 6, 6) and H_last (N, 6, 6) (see :meth:`ChainAnchor.model`), valid (N,).
+_ROW_AXIS = {"A": 1, "V": 0, "G": 1, "Hd": 1, "Bo": 1, "Hinv": 1, "H_last": 0, "valid": 0}
 
 
-class FrameAnchors:
-    """Per frame (keyed by the frame object), per hypothesis: the pose and exact terms of its last evaluation."""
+class ChainAnchor:
+    """The older part's Gauss-Newton model per hypothesis, at its anchor poses (module docstring)."""
 
     def __init__(self) -> None:
-        self.anchors: dict[FrameLikelihood, Anchor] = {}
+        self.key: tuple | None = None  # identities of the older frames the model belongs to
+        self.arrays: dict[str, np.ndarray] = {}
 
     def clear(self) -> None:
-        """Forget every anchor (new hypotheses)."""
-        self.anchors = {}
+        """Forget the model (new hypotheses or a new window)."""
+        self.key, self.arrays = None, {}
 
-    def keep_only(self, frames: list[FrameLikelihood]) -> None:
-        """Drop the anchors of frames no longer in ``frames`` (marginalised)."""
-        live = {id(f) for f in frames}
-        self.anchors = {f: a for f, a in self.anchors.items() if id(f) in live}
-
-    def subset(self, index: np.ndarray) -> FrameAnchors:
+    def subset(self, index: np.ndarray) -> ChainAnchor:
         """The anchors of hypotheses ``index`` (copies)."""
-        out = FrameAnchors()
-        out.anchors = {f: tuple(x[index] for x in a) for f, a in self.anchors.items()}
+        out = ChainAnchor()
+        out.key = self.key
+        out.arrays = {k: np.take(a, index, axis=_ROW_AXIS[k]) for k, a in self.arrays.items()}
         return out
 
-    def copy_rows(self, index: np.ndarray, source: FrameAnchors, source_index: np.ndarray) -> None:
-        """Rows ``index`` become copies of ``source``'s rows ``source_index``; frames ``source`` lacks are dropped."""
-        for f in list(self.anchors):
-            src = source.anchors.get(f)
-            if src is None:
-                del self.anchors[f]
-                continue
-            for x, s in zip(self.anchors[f], src, strict=True):
-                x[index] = s[source_index]
+    def copy_rows(self, index: np.ndarray, source: ChainAnchor, source_index: np.ndarray) -> None:
+        """Rows ``index`` become copies of ``source``'s rows ``source_index`` (invalid where it has no model)."""
+        if self.key is None:
+            return
+        same = source.key == self.key and source.arrays["A"].shape[0] == self.arrays["A"].shape[0]
+        if not same:
+            self.arrays["valid"][index] = False
+            return
+        for k, a in self.arrays.items():
+            src = np.take(source.arrays[k], source_index, axis=_ROW_AXIS[k])
+            if _ROW_AXIS[k] == 0:
+                a[index] = src
+            else:
+                a[:, index] = src
 
-    def terms(self, frames: list[FrameLikelihood], poses: np.ndarray, threshold: float
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Frames' Gauss-Newton terms at ``poses (K, N, 4, 4)``: values (K, N), gradients (K, N, 6), H (K, N, 6, 6).
+    def _evaluate(self, frames: list[FrameLikelihood], poses: np.ndarray, prior: tuple[np.ndarray, np.ndarray],
+                  deltas: list[np.ndarray], delta_W: list[np.ndarray]) -> dict[str, np.ndarray]:
+        """The older part's exact model at ``poses (L-1, n, 4, 4)`` (rows of the hypotheses to re-anchor)."""
+        K, n = poses.shape[:2]
+        terms = gauss_newton_frames(frames, list(poses))
+        V = np.sum([t[0] for t in terms], axis=0)
+        G = np.stack([t[1] for t in terms])
+        Hd = np.stack([t[2] for t in terms])
+        r, J = res.pose_prior_residual(poses[0], prior[0])
+        pv, pg, pH = whiten_prior(r, J, prior[1])
+        V, G[0], Hd[0] = V + pv, G[0] + pg, Hd[0] + pH
+        Bo = np.zeros((0, n, 6, 6))
+        if K > 1:
+            m_val, m_gp, m_gc, m_Hpp, Bo, m_Hcc = chain_motion_terms(poses, deltas, delta_W)
+            V = V + np.sum(m_val, axis=0)
+            G[:-1] += m_gp
+            G[1:] += m_gc
+            Hd[:-1] += m_Hpp
+            Hd[1:] += m_Hcc
+        # the Schur sweep's informations depend on the anchored blocks alone: kept with them
+        Hinv, H_run = [], Hd[0]
+        for j in range(K - 1):
+            Hinv.append(inv_psd(H_run))
+            H_run = Hd[j + 1] - np.swapaxes(Bo[j], -1, -2) @ Hinv[-1] @ Bo[j]
+        return {"A": poses.copy(), "V": V, "G": G, "Hd": Hd, "Bo": np.array(Bo),
+                "Hinv": np.array(Hinv).reshape(K - 1, n, 6, 6), "H_last": H_run, "valid": np.ones(n, dtype=bool)}
 
-        From each anchor's quadratic model where the pose moved less than ``threshold * RELIN_SCALE``
-        per component since the anchor (module docstring), exact elsewhere (and re-anchored there).
-        The exact evaluations of all frames are one :func:`~pinpoint_fg.likelihood.gauss_newton_frames` call.
+    def model(self, frames: list[FrameLikelihood], poses: np.ndarray, prior: tuple[np.ndarray, np.ndarray],
+              deltas: list[np.ndarray], delta_W: list[np.ndarray], threshold: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The older part at its current ``poses (L-1, N, 4, 4)``: value (N,), gradients (L-1, N, 6), diagonal
+        blocks (L-1, N, 6, 6), couplings (L-2, N, 6, 6), and its Schur sweep: ``H_jj^-1`` of poses
+        ``0 .. L-3`` (L-2, N, 6, 6) and pose L-2's information after their elimination (N, 6, 6) (the
+        ``head_inv`` and ``Hs[L-2]`` of :func:`~pinpoint_fg.elimination.eliminate_onto_newest`, before the last
+        motion term is added).
+
+        ``frames`` the older frames, ``prior`` the window prior's (mean, whitening), ``deltas`` / ``delta_W``
+        the motions among the older poses. Hypotheses whose poses moved ``threshold * RELIN_SCALE`` or more
+        (in any component of any pose) since their anchor are re-linearised exactly, in one batched
+        evaluation, and re-anchored.
         """
         K, N = poses.shape[:2]
-        have = [j for j, f in enumerate(frames) if f in self.anchors and self.anchors[f][0].shape[0] == N]
-        d = np.zeros((K, N, 6))
-        stale = np.ones((K, N), dtype=bool)
-        if have:
-            T0 = np.stack([self.anchors[frames[j]][0] for j in have])
-            d[have] = local(T0.reshape(-1, 4, 4), poses[have].reshape(-1, 4, 4)).reshape(len(have), N, 6)
-            stale[have] = ~(np.max(np.abs(d[have]) / RELIN_SCALE, axis=2) < threshold)
-        todo = [j for j in range(K) if stale[j].any()]
-        if todo:
-            rows = [np.flatnonzero(stale[j]) for j in todo]
-            fresh = gauss_newton_frames([frames[j] for j in todo],
-                                        [poses[j, r] for j, r in zip(todo, rows, strict=True)])
-            for j, r, (v, g, H) in zip(todo, rows, fresh, strict=True):
-                if r.size == N:
-                    self.anchors[frames[j]] = (poses[j].copy(), v, g, H)
-                else:
-                    a = self.anchors[frames[j]]
-                    for x, new in zip(a, (poses[j, r], v, g, H), strict=True):
-                        x[r] = new
-                d[j, r] = 0.0
-        a = [self.anchors[f] for f in frames]
-        v0, g0, H0 = np.stack([x[1] for x in a]), np.stack([x[2] for x in a]), np.stack([x[3] for x in a])
-        Hd = (H0 @ d[..., None])[..., 0]
-        return v0 + np.sum(d * (g0 + 0.5 * Hd), axis=-1), g0 + Hd, H0
+        key = tuple(id(f) for f in frames)
+        if self.key != key or self.arrays["V"].shape[0] != N:
+            self.key, self.arrays = key, self._evaluate(frames, poses, prior, deltas, delta_W)
+            d = np.zeros((K, N, 6))
+        else:
+            a = self.arrays
+            d = local(a["A"].reshape(-1, 4, 4), poses.reshape(-1, 4, 4)).reshape(K, N, 6)
+            stale = ~a["valid"] | ~(np.max(np.abs(d) / RELIN_SCALE, axis=(0, 2)) < threshold)
+            if stale.any():
+                rows = np.flatnonzero(stale)
+                fresh = self._evaluate(frames, poses[:, rows], (prior[0][rows], prior[1][rows]), deltas, delta_W)
+                for k, x in fresh.items():
+                    if _ROW_AXIS[k] == 0:
+                        a[k][rows] = x
+                    else:
+                        a[k][:, rows] = x
+                d[:, rows] = 0.0
+        a = self.arrays
+        Hd_d = (a["Hd"] @ d[..., None])[..., 0]
+        if K > 1:
+            Hd_d[:-1] += (a["Bo"] @ d[1:, ..., None])[..., 0]
+            Hd_d[1:] += (np.swapaxes(a["Bo"], -1, -2) @ d[:-1, ..., None])[..., 0]
+        value = a["V"] + np.sum(d * (a["G"] + 0.5 * Hd_d), axis=(0, 2))
+        return value, a["G"] + Hd_d, a["Hd"], a["Bo"], a["Hinv"], a["H_last"]

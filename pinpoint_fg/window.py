@@ -58,7 +58,7 @@ from pinpoint_fg.elimination import (
     whiten_prior,
 )
 from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
-from pinpoint_fg.relinearize import FrameAnchors
+from pinpoint_fg.relinearize import ChainAnchor
 
 #: Random-walk noise per frame when the motion model is off or kinematics are missing:
 #: [omega (rad) x3, v (m) x3] = 5 deg, 1 mm (the particle filter's random walk, DESIGN.md).
@@ -83,9 +83,10 @@ class Window:
                  relin_threshold: float = 0.0) -> None:
         """``process_cov``: per-frame covariance ``Q`` (6x6, ``[omega; v]``) of the motion residual.
 
-        ``relin_threshold``: the older frames' measurement terms are reused from their last evaluation
-        while their poses moved less than this times (5 deg, 1 mm) per component
-        (:mod:`pinpoint_fg.relinearize`); 0 re-linearises every term exactly on every call.
+        ``relin_threshold``: the Gauss-Newton model of the terms among the older poses (their frames, the
+        prior, their motion terms) is reused from its last exact evaluation while those poses moved less than
+        this times (5 deg, 1 mm) per component (:mod:`pinpoint_fg.relinearize`); 0 re-linearises every term
+        exactly on every call.
         """
         if int(length) < 1:
             raise ValueError(f"window length must be >= 1, got {length}")
@@ -94,7 +95,7 @@ class Window:
         if not (np.isfinite(relin_threshold) and relin_threshold >= 0.0):
             raise ValueError(f"relin_threshold must be finite and >= 0, got {relin_threshold}")
         self.relin_threshold = float(relin_threshold)
-        self._anchors = FrameAnchors()
+        self._anchor = ChainAnchor()
         self.length = int(length)
         self.forgetting = float(forgetting)
         self.evidence: np.ndarray | None = None  # (N,) accumulated marginalised cost
@@ -137,7 +138,7 @@ class Window:
         self.evidence = np.zeros(T.shape[0])
         W = np.diag(1.0 / np.asarray(prior_sigma, dtype=float))
         self.prior_W = np.broadcast_to(W, (T.shape[0], 6, 6)).copy()
-        self._anchors.clear()
+        self._anchor.clear()
 
     def reset_newest(self, cam_T_needle: np.ndarray, prior_sigma: np.ndarray) -> None:
         """Re-seed: keep only the newest frame, at new poses with a fresh weak prior."""
@@ -199,26 +200,13 @@ class Window:
             self._prior_memo = (key, (nll, g, H))
         return nll, g, H
 
-    def _relin_unaries(self) -> tuple[list, list, list]:
-        """The poses' own terms (:meth:`_unary`) with the older frames' from :mod:`pinpoint_fg.relinearize`."""
-        assert self.poses is not None
-        L = self.size
-        self._anchors.keep_only(self.frames)
-        v, g, H = self._anchors.terms(self.frames[:-1], self.poses[:-1], self.relin_threshold)
-        pv, pg, pH = self._prior_terms(self.poses[0])
-        vals, gs, Hs = list(v), list(g), list(H)
-        vals[0], gs[0], Hs[0] = vals[0] + pv, gs[0] + pg, Hs[0] + pH
-        v, g, H = self._unary(L - 1, self.poses[-1])
-        return vals + [v], gs + [g], Hs + [H]
-
     def linearize(self) -> Linearization:
         """Gauss-Newton model of every window, eliminated onto the newest pose (see module docstring)."""
         assert self.poses is not None
         L = self.size
         if L > 1 and self.relin_threshold > 0:
-            vals, gs, Hs = self._relin_unaries()
-        else:
-            vals, gs, Hs = self._exact_unaries()
+            return self._linearize_anchored()
+        vals, gs, Hs = self._exact_unaries()
         newest_part = vals[-1]
         Bs: list[np.ndarray] = []
         if L > 1:
@@ -228,6 +216,25 @@ class Window:
         window_value = np.sum(vals, axis=0)
         c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs)
         return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
+
+    def _linearize_anchored(self) -> Linearization:
+        """:meth:`linearize` with the older part from its anchored model (:mod:`pinpoint_fg.relinearize`)."""
+        assert self.poses is not None
+        v_old, g_old, H_old, B_old, head_inv, H_last = self._anchor.model(
+            self.frames[:-1], self.poses[:-1], (self.prior_mean, self.prior_W), self.deltas[:-1], self.delta_W[:-1],
+            self.relin_threshold)
+        v_new, g_new, H_new = self._unary(self.size - 1, self.poses[-1])
+        r, Jp, Jc = res.motion_residual(self.poses[-2], self.poses[-1], self.deltas[-1])
+        m_val, m_gp, m_gc, m_Hpp, m_Hpc, m_Hcc = whiten_motion(r, Jp, Jc, self.delta_W[-1])
+        gs, Hs = list(g_old), list(H_old)
+        gs[-1] = gs[-1] + m_gp
+        Hs[-1] = (H_last if len(head_inv) else Hs[-1]) + m_Hpp  # pose L-2 after the (known) older eliminations
+        gs.append(g_new + m_gc)
+        Hs.append(H_new + m_Hcc)
+        Bs = list(B_old) + [m_Hpc]
+        window_value = v_old + m_val + v_new
+        c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs, list(head_inv))
+        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, v_new + m_val)
 
     def _exact_unaries(self) -> tuple[list, list, list]:
         """Every pose's own terms (:meth:`_unary`), the frames no memo holds in one batched evaluation."""
@@ -302,7 +309,7 @@ class Window:
         self.frames = self.frames[1:]
         self.deltas = self.deltas[1:]
         self.delta_W = self.delta_W[1:]
-        self._anchors.keep_only(self.frames)
+        self._anchor.clear()
 
     def subset(self, index: np.ndarray | list[int]) -> Window:
         """A window over hypotheses ``index`` only: copies of their poses, priors and evidence, the same frames.
@@ -319,7 +326,7 @@ class Window:
         sub.evidence = None if self.evidence is None else self.evidence[index].copy()
         sub.frames, sub.deltas, sub.delta_W = list(self.frames), list(self.deltas), list(self.delta_W)
         sub._prior_memo = None
-        sub._anchors = self._anchors.subset(index)
+        sub._anchor = self._anchor.subset(index)
         return sub
 
     def adopt(self, sub: Window, index: np.ndarray | list[int]) -> None:
@@ -336,7 +343,7 @@ class Window:
         valid = (memo is not None and sub_memo is not None and memo[0] == self._prior_key(self.poses[0])
                  and sub_memo[0] == sub._prior_key(sub.poses[0]))
         self.poses[:, index] = sub.poses
-        self._anchors.copy_rows(index, sub._anchors, np.arange(index.shape[0]))
+        self._anchor.copy_rows(index, sub._anchor, np.arange(index.shape[0]))
         if not valid:
             self._prior_memo = None
             return
@@ -356,7 +363,7 @@ class Window:
         self.prior_W = self.prior_W[index]
         if self.evidence is not None:
             self.evidence = self.evidence[index]
-        self._anchors = self._anchors.subset(index)
+        self._anchor = self._anchor.subset(index)
         self._prior_memo = (self._prior_key(self.poses[0]), _reindexed_rows(memo[1], index)) if valid else None
 
 
@@ -381,4 +388,4 @@ def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Windo
     window.prior_W[index] = source.prior_W[source_index]
     window.evidence[index] = source.evidence[source_index]
     window._prior_memo = None
-    window._anchors.copy_rows(index, source._anchors, source_index)
+    window._anchor.copy_rows(index, source._anchor, source_index)

@@ -21,7 +21,7 @@ def _with_threshold(w: Window, threshold: float) -> Window:
     c.poses, c.prior_mean, c.prior_W = w.poses.copy(), w.prior_mean.copy(), w.prior_W.copy()
     c.evidence = w.evidence.copy()
     c._prior_memo = None
-    c._anchors = type(w._anchors)()
+    c._anchor = type(w._anchor)()
     c.relin_threshold = threshold
     return c
 
@@ -61,7 +61,7 @@ def test_threshold_zero_is_the_exact_path_and_negative_is_rejected() -> None:
         Window(3, np.eye(6), relin_threshold=-0.1)
     zero = _with_threshold(w, 0.0)
     zero.linearize()
-    assert not zero._anchors.anchors  # the exact path: nothing anchored
+    assert zero._anchor.key is None  # the exact path: nothing anchored
     # the same code path as a window without the setting (memo vs fresh batched evaluation: round-off only)
     _assert_lin_close(zero.linearize(), w.linearize(), 1e-12)
 
@@ -79,7 +79,7 @@ def test_reused_terms_are_second_order_close_to_the_exact_ones() -> None:
         exact.poses = exact.poses @ move
         anchored.poses = anchored.poses @ move
         a, e = anchored.linearize(), exact.linearize()
-        assert np.all(anchored._anchors.anchors[w.frames[0]][0] == w.poses[0])  # still at the old poses
+        assert np.all(anchored._anchor.arrays["A"] == w.poses[:-1])  # still at the old poses
         assert not np.array_equal(a.grad, e.grad)  # the reuse is an approximation
         errors.append(float(np.max(np.abs(a.grad - e.grad)) / np.max(np.abs(e.grad))))
         value_errors.append(float(np.max(np.abs(a.window_value - e.window_value))))
@@ -108,13 +108,15 @@ def test_subset_adopt_resample_and_copies_keep_anchor_rows() -> None:
     _assert_lin_close(w.linearize(), before.subset(order), 1e-9)
     copy_hypotheses(w, [0], w.subset([4]), [0])
     _assert_lin_close(w.linearize().subset([0]), w.linearize().subset([4]), 1e-9)
-    # every anchored term is a real evaluation at its anchor pose
-    f = w.frames[0]
-    T0, v0, g0, H0 = w._anchors.anchors[f]
-    v, g, H = f.gauss_newton(T0)
-    np.testing.assert_allclose(v0, v, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(g0, g, rtol=0, atol=1e-9 * np.max(np.abs(g)))
-    np.testing.assert_allclose(H0, H, rtol=0, atol=1e-9 * np.max(np.abs(H)))
+    # the anchored model is a real evaluation at its anchor poses: an exact window there has the same model
+    a = w._anchor.arrays
+    at_anchor = _with_threshold(w, 0.0)
+    at_anchor.poses[:-1] = a["A"]
+    _assert_lin_close(_with_threshold(at_anchor, 1e-15).linearize(), at_anchor.linearize(), 1e-9)
+    fresh = _with_threshold(at_anchor, 1e3)
+    fresh.linearize()
+    for k in ("V", "G", "Hd", "Bo"):
+        np.testing.assert_allclose(a[k], fresh._anchor.arrays[k], rtol=0, atol=1e-9 * np.max(np.abs(a[k])))
 
 
 def test_marginalisation_drops_anchors_and_stays_exact() -> None:
@@ -128,5 +130,5 @@ def test_marginalisation_drops_anchors_and_stays_exact() -> None:
     frame = w.frames[-1]
     for x in (exact, anchored):
         x.push(frame, np.eye(4) @ se3_exp(np.full(6, 1e-4)), use_motion=True)
-    assert set(anchored._anchors.anchors) <= set(anchored.frames)
+    assert anchored._anchor.key is None  # the marginalised frame's model is gone
     np.testing.assert_allclose(anchored.evidence, exact.evidence, rtol=0, atol=1e-9 * np.max(np.abs(exact.evidence)))

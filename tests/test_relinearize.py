@@ -132,3 +132,18 @@ def test_marginalisation_drops_anchors_and_stays_exact() -> None:
         x.push(frame, np.eye(4) @ se3_exp(np.full(6, 1e-4)), use_motion=True)
     assert anchored._anchor.key is None  # the marginalised frame's model is gone
     np.testing.assert_allclose(anchored.evidence, exact.evidence, rtol=0, atol=1e-9 * np.max(np.abs(exact.evidence)))
+
+
+def test_rows_copied_from_a_window_without_the_model_are_re_linearised() -> None:
+    """copy_hypotheses from a source whose older part is not anchored (or another window) marks the rows stale:
+    the next model is the exact one for them."""
+    w, _ = _window(3, 5, np.random.default_rng(9), frames=4)
+    w = _with_threshold(w, 1e3)
+    w.linearize()
+    src = _with_threshold(w, 0.0)  # same frames, no anchored model
+    src.poses = src.poses @ se3_exp(np.full(src.poses.shape[:2] + (6,), 0.1) * RELIN_SCALE)
+    copy_hypotheses(w, [2], src, [4])
+    assert not w._anchor.arrays["valid"][2] and w._anchor.arrays["valid"][[0, 1, 3, 4]].all()
+    exact = _with_threshold(w, 0.0)
+    _assert_lin_close(w.linearize().subset([2]), exact.linearize().subset([2]), 1e-9)
+    assert w._anchor.arrays["valid"][2]

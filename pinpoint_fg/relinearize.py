@@ -47,9 +47,10 @@ from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
 #: Scale of the relinearisation threshold: [omega x3 (rad), v x3 (m)] = 5 deg, 1 mm.
 RELIN_SCALE = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 
-#: Axis of the hypotheses in each anchored array: A (L-1, N, 4, 4), V (N,), G (L-1, N, 6), Hd (L-1, N, 6, 6),
-#: Bo (L-2, N, 6, 6), the sweep's Hinv (L-2, N, 6, 6) and H_last (N, 6, 6) (see :meth:`ChainAnchor.model`), valid (N,).
-_ROW_AXIS = {"A": 1, "V": 0, "G": 1, "Hd": 1, "Bo": 1, "Hinv": 1, "H_last": 0, "valid": 0}
+#: Axis of the hypotheses in each anchored array: A (L-1, N, 4, 4), the frames' own terms Fv (L-1, N), Fg (L-1, N, 6),
+#: FH (L-1, N, 6, 6), the older part's V (N,), G (L-1, N, 6), Hd (L-1, N, 6, 6), Bo (L-2, N, 6, 6), the sweep's
+#: Hinv (L-2, N, 6, 6) and H_last (N, 6, 6) (see :meth:`ChainAnchor.model`), valid (N,).
+_ROW_AXIS = {"A": 1, "Fv": 1, "Fg": 1, "FH": 1, "V": 0, "G": 1, "Hd": 1, "Bo": 1, "Hinv": 1, "H_last": 0, "valid": 0}
 
 
 class ChainAnchor:
@@ -85,20 +86,20 @@ class ChainAnchor:
             else:
                 a[:, index] = src
 
-    def _evaluate(self, frames: list[FrameLikelihood], poses: np.ndarray, prior: tuple[np.ndarray, np.ndarray],
+    @staticmethod
+    def _assemble(A: np.ndarray, Fv: np.ndarray, Fg: np.ndarray, FH: np.ndarray, prior: tuple[np.ndarray, np.ndarray],
                   deltas: list[np.ndarray], delta_W: list[np.ndarray]) -> dict[str, np.ndarray]:
-        """The older part's exact model at ``poses (L-1, n, 4, 4)`` (rows of the hypotheses to re-anchor)."""
-        K, n = poses.shape[:2]
-        terms = gauss_newton_frames(frames, list(poses))
-        V = np.sum([t[0] for t in terms], axis=0)
-        G = np.stack([t[1] for t in terms])
-        Hd = np.stack([t[2] for t in terms])
-        r, J = res.pose_prior_residual(poses[0], prior[0])
+        """The older part's model at anchor poses ``A (L-1, n, 4, 4)`` from its frames' terms there (``Fv``, ``Fg``,
+        ``FH``): the prior and the motion terms added (evaluated at ``A``), and the sweep's informations."""
+        K, n = A.shape[:2]
+        r, J = res.pose_prior_residual(A[0], prior[0])
         pv, pg, pH = whiten_prior(r, J, prior[1])
-        V, G[0], Hd[0] = V + pv, G[0] + pg, Hd[0] + pH
+        V, G, Hd = np.sum(Fv, axis=0) + pv, Fg.copy(), FH.copy()
+        G[0] += pg
+        Hd[0] += pH
         Bo = np.zeros((0, n, 6, 6))
         if K > 1:
-            m_val, m_gp, m_gc, m_Hpp, Bo, m_Hcc = chain_motion_terms(poses, deltas, delta_W)
+            m_val, m_gp, m_gc, m_Hpp, Bo, m_Hcc = chain_motion_terms(A, deltas, delta_W)
             V = V + np.sum(m_val, axis=0)
             G[:-1] += m_gp
             G[1:] += m_gc
@@ -109,8 +110,37 @@ class ChainAnchor:
         for j in range(K - 1):
             Hinv.append(inv_psd(H_run))
             H_run = Hd[j + 1] - np.swapaxes(Bo[j], -1, -2) @ Hinv[-1] @ Bo[j]
-        return {"A": poses.copy(), "V": V, "G": G, "Hd": Hd, "Bo": np.array(Bo),
+        return {"A": A, "Fv": Fv, "Fg": Fg, "FH": FH, "V": V, "G": G, "Hd": Hd, "Bo": np.array(Bo),
                 "Hinv": np.array(Hinv).reshape(K - 1, n, 6, 6), "H_last": H_run, "valid": np.ones(n, dtype=bool)}
+
+    def _evaluate(self, frames: list[FrameLikelihood], poses: np.ndarray, prior: tuple[np.ndarray, np.ndarray],
+                  deltas: list[np.ndarray], delta_W: list[np.ndarray]) -> dict[str, np.ndarray]:
+        """The older part's exact model at ``poses (L-1, n, 4, 4)`` (rows of the hypotheses to re-anchor)."""
+        terms = gauss_newton_frames(frames, list(poses))
+        return self._assemble(poses.copy(), np.stack([t[0] for t in terms]), np.stack([t[1] for t in terms]),
+                              np.stack([t[2] for t in terms]), prior, deltas, delta_W)
+
+    def _slid(self, key: tuple, frames: list[FrameLikelihood], poses: np.ndarray,
+              prior: tuple[np.ndarray, np.ndarray], deltas: list[np.ndarray], delta_W: list[np.ndarray]
+              ) -> dict[str, np.ndarray] | None:
+        """After a push: the model of the new older part from the old one's frames (still at their anchors),
+        the frame that joined (evaluated at its current poses: memoised as the newest) and the prior and motion
+        terms evaluated anew; None when the old model does not cover the new older part."""
+        old, a = self.key, self.arrays
+        if old is None or not old or a["V"].shape[0] != poses.shape[1]:
+            return None
+        if key[:-1] == old:  # the window grew: a frame joined the older part
+            keep = slice(0, len(old))
+        elif key[:-1] == old[1:]:  # it slid: the oldest frame was marginalised, a frame joined
+            keep = slice(1, len(old))
+        else:
+            return None
+        v, g, H = gauss_newton_frames([frames[-1]], [poses[-1]])[0]
+        A = np.concatenate([a["A"][keep], poses[-1:]])
+        out = self._assemble(A, np.concatenate([a["Fv"][keep], v[None]]), np.concatenate([a["Fg"][keep], g[None]]),
+                             np.concatenate([a["FH"][keep], H[None]]), prior, deltas, delta_W)
+        out["valid"] = a["valid"].copy()
+        return out
 
     def model(self, frames: list[FrameLikelihood], poses: np.ndarray, prior: tuple[np.ndarray, np.ndarray],
               deltas: list[np.ndarray], delta_W: list[np.ndarray], threshold: float
@@ -128,11 +158,17 @@ class ChainAnchor:
         """
         K, N = poses.shape[:2]
         key = tuple(id(f) for f in frames)
-        if self.key != key or self.arrays["V"].shape[0] != N:
-            self.key, self.arrays = key, self._evaluate(frames, poses, prior, deltas, delta_W)
+        if self.key == key and self.arrays["V"].shape[0] != N:
+            self.key = None
+        exact = False
+        if self.key != key:
+            slid = self._slid(key, frames, poses, prior, deltas, delta_W)
+            exact = slid is None
+            self.key, self.arrays = key, (self._evaluate(frames, poses, prior, deltas, delta_W) if exact else slid)
+        a = self.arrays
+        if exact:
             d = np.zeros((K, N, 6))
         else:
-            a = self.arrays
             d = local(a["A"].reshape(-1, 4, 4), poses.reshape(-1, 4, 4)).reshape(K, N, 6)
             stale = ~a["valid"] | ~(np.max(np.abs(d) / RELIN_SCALE, axis=(0, 2)) < threshold)
             if stale.any():
@@ -144,7 +180,6 @@ class ChainAnchor:
                     else:
                         a[k][:, rows] = x
                 d[:, rows] = 0.0
-        a = self.arrays
         Hd_d = (a["Hd"] @ d[..., None])[..., 0]
         if K > 1:
             Hd_d[:-1] += (a["Bo"] @ d[1:, ..., None])[..., 0]

@@ -309,7 +309,6 @@ class Window:
         self.frames = self.frames[1:]
         self.deltas = self.deltas[1:]
         self.delta_W = self.delta_W[1:]
-        self._anchor.clear()
 
     def subset(self, index: np.ndarray | list[int]) -> Window:
         """A window over hypotheses ``index`` only: copies of their poses, priors and evidence, the same frames.

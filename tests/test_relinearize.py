@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from factors.lie import se3_exp
+from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.relinearize import RELIN_SCALE
 from pinpoint_fg.window import Window, copy_hypotheses
-from tests.test_window import _window
+from tests.test_window import MODEL, _observation, _window
 
 
 def _with_threshold(w: Window, threshold: float) -> Window:
@@ -20,6 +21,7 @@ def _with_threshold(w: Window, threshold: float) -> Window:
     c = copy.copy(w)
     c.poses, c.prior_mean, c.prior_W = w.poses.copy(), w.prior_mean.copy(), w.prior_W.copy()
     c.evidence = w.evidence.copy()
+    c.frames, c.deltas, c.delta_W = list(w.frames), list(w.deltas), list(w.delta_W)
     c._prior_memo = None
     c._anchor = type(w._anchor)()
     c.relin_threshold = threshold
@@ -119,19 +121,31 @@ def test_subset_adopt_resample_and_copies_keep_anchor_rows() -> None:
         np.testing.assert_allclose(a[k], fresh._anchor.arrays[k], rtol=0, atol=1e-9 * np.max(np.abs(a[k])))
 
 
-def test_marginalisation_drops_anchors_and_stays_exact() -> None:
-    """Sliding drops the marginalised frame's anchors; the evidence is the exact path's."""
+@pytest.mark.parametrize("grow", [False, True])
+def test_sliding_keeps_the_anchored_frames_and_the_evidence_exact(grow: bool) -> None:
+    """After a push the older part's model is rebuilt from the frames still anchored (the new prior and motion
+    terms evaluated anew, the joining frame at its poses): equal to a fresh exact evaluation at the anchor
+    poses. Marginalisation (``grow`` False: the window is full) stays exact: the same evidence as the exact path."""
     rng = np.random.default_rng(8)
-    w, obs = _window(2, 6, rng, frames=3)
+    w, obs = _window(3, 6, rng, frames=3 if grow else 4)
+    w.length = 4 if grow else 3
     exact, anchored = _with_threshold(w, 0.0), _with_threshold(w, 0.5)
     for x in (exact, anchored):
         x.move_newest(np.full((6, 6), 1e-3), x.linearize())
     anchored.linearize()
-    frame = w.frames[-1]
+    before = anchored._anchor.arrays["A"].copy()
+    frame = FrameLikelihood(_observation(len(w.frames), rng), MODEL)
     for x in (exact, anchored):
-        x.push(frame, np.eye(4) @ se3_exp(np.full(6, 1e-4)), use_motion=True)
-    assert anchored._anchor.key is None  # the marginalised frame's model is gone
+        x.push(frame, se3_exp(np.full(6, 1e-4)), use_motion=True)
     np.testing.assert_allclose(anchored.evidence, exact.evidence, rtol=0, atol=1e-9 * np.max(np.abs(exact.evidence)))
+    anchored.linearize()
+    a = anchored._anchor.arrays
+    kept = before if grow else before[1:]
+    np.testing.assert_array_equal(a["A"][: len(kept)], kept)  # the old frames stay at their anchors
+    fresh = type(anchored._anchor)()._evaluate(anchored.frames[:-1], a["A"], (anchored.prior_mean, anchored.prior_W),
+                                               anchored.deltas[:-1], anchored.delta_W[:-1])
+    for k in ("V", "G", "Hd", "Bo", "Hinv", "H_last"):
+        np.testing.assert_allclose(a[k], fresh[k], rtol=0, atol=1e-9 * max(1.0, float(np.max(np.abs(fresh[k])))))
 
 
 def test_rows_copied_from_a_window_without_the_model_are_re_linearised() -> None:

@@ -12,7 +12,7 @@ import pytest
 from factors.lie import se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.relinearize import RELIN_SCALE
-from pinpoint_fg.window import Window, copy_hypotheses
+from pinpoint_fg.window import DEFAULT_RELIN_THRESHOLD, Window, copy_hypotheses
 from tests.test_window import MODEL, _observation, _window
 
 
@@ -59,6 +59,7 @@ def test_tiny_threshold_equals_the_exact_linearisation(L: int) -> None:
 def test_threshold_zero_is_the_exact_path_and_negative_is_rejected() -> None:
     w, _ = _window(3, 6, np.random.default_rng(3), frames=4)
     assert w.relin_threshold == 0.0
+    assert Window(3, np.eye(6)).relin_threshold == DEFAULT_RELIN_THRESHOLD > 0.0
     with pytest.raises(ValueError, match="relin_threshold"):
         Window(3, np.eye(6), relin_threshold=-0.1)
     zero = _with_threshold(w, 0.0)

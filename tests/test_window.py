@@ -47,7 +47,7 @@ def _observation(k: int, rng: np.random.Generator, image: bool = True) -> Observ
 
 def _window(L: int, N: int, rng: np.random.Generator, frames: int, image_every: int = 2) -> tuple[Window, list]:
     noise = NoiseConfig()
-    w = Window(L, noise.process_cov)
+    w = Window(L, noise.process_cov, relin_threshold=0.0)  # the exact path (test_relinearize.py: the anchored one)
     obs = [_observation(k, rng, image=(k % image_every == 0)) for k in range(frames)]
     start = _truth(0) @ se3_exp(rng.normal(size=(N, 6)) * np.r_[[0.05] * 3, [1e-3] * 3])
     w.start(start, FrameLikelihood(obs[0], MODEL), np.r_[[0.3] * 3, [0.01] * 3])

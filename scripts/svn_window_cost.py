@@ -8,9 +8,10 @@ machines, not the milliseconds. Prints per tracker the median step latency over 
 frames (frames ``--skip``.. only: the first frames run twice the iterations), the median CPU time, the
 ratio to L = 1 at the same N and threshold, the mean iterations and the MAP pose's mean errors (all frames).
 
-``--relin`` sets :attr:`pinpoint_fg.window.Window.relin_threshold` (0: every term re-linearised exactly).
-With ``PYTHONPATH=<another tree>`` the same script measures that tree (``--relin 0`` only, if it predates
-the setting): run both in turn for a before/after comparison.
+``--relin`` sets :attr:`pinpoint_fg.window.Window.relin_threshold` (0: every term re-linearised exactly;
+-1, the default: the tracker's own default, printed). With ``PYTHONPATH=<another tree>`` the same script
+measures that tree (without ``--relin`` if it predates the setting): run both in turn for a before/after
+comparison.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ def main() -> None:
     ap.add_argument("run", type=Path)
     ap.add_argument("--particles", type=int, nargs="+", default=[10, 50])
     ap.add_argument("--windows", type=int, nargs="+", default=[1, 5])
-    ap.add_argument("--relin", type=float, nargs="+", default=[0.0])
+    ap.add_argument("--relin", type=float, nargs="+", default=[-1.0],
+                    help="relinearisation thresholds (default -1: the tracker's own default)")
     ap.add_argument("--skip", type=int, default=20, help="latency statistics from this frame on")
     ap.add_argument("--frames", type=int, default=None, help="at most this many frames")
     args = ap.parse_args()
@@ -50,8 +52,10 @@ def main() -> None:
     trackers = {}
     for n, L, thr in specs:
         t = make_tracker("svn", tracker_config(rec, "svn", n, L, seed=0))
-        if thr > 0:
-            t.window.relin_threshold = thr
+        if thr >= 0:
+            t.window.relin_threshold = thr  # a tree without the setting: its (exact) path only
+        elif hasattr(t.window, "relin_threshold"):
+            print(f"N={n} L={L}: default relinearisation threshold {t.window.relin_threshold}")
         trackers[(n, L, thr)] = t
     F = len(frames)
     lat = {s: np.zeros(F) for s in specs}

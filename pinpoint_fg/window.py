@@ -22,6 +22,11 @@ and information ``H`` (6x6), all particles at once. The sweep's conditionals giv
 back-substitution that moves the older poses with the newest (smoothing). This equals GTSAM's
 ``linearize`` + ``eliminatePartialMultifrontal`` on the same window (tested).
 
+**Relinearisation threshold** (:attr:`Window.relin_threshold`, :mod:`pinpoint_fg.relinearize`): at
+``L > 1`` the Gauss-Newton model of the terms among the older poses is reused, corrected to first and
+second order, while those poses moved less than the threshold since it was last evaluated exactly
+(0: every call exact, the path the GTSAM comparison pins).
+
 **Sliding** (:meth:`Window.push`): a new frame appends the pose predicted by the grasper's motion;
 when the window exceeds ``L`` poses the oldest is marginalised into a new prior on the next one
 (Schur complement, re-expressed as a mean and information; eigenvalues floored so it stays

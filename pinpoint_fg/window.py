@@ -71,8 +71,9 @@ RANDOM_WALK_SIGMA = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 
 #: Default relinearisation threshold of the older poses (:mod:`pinpoint_fg.relinearize`), in units of
 #: (5 deg, 1 mm) per tangent component. Measured (``scripts/svn_window_cost.py``, N = 50, L = 5, 150-frame
-#: seed-1 runs): SVN's mean MAP errors within 0.6 % of the exact path (0) on normal, rotation, suturing and
-#: kinfault, at 0.6-0.7x its CPU time per frame; 0.5 was slower and, on rotation, 2.6 % worse in translation.
+#: seed-1 runs): SVN's mean MAP errors within 2 % of the exact path (0) on normal, rotation, suturing and
+#: kinfault (worst: rotation, +1.6 % in translation and rotation; suturing better), at 0.58-0.66x its CPU time
+#: per frame; 0.5 (an earlier form of the anchoring) was slower and, on rotation, 2.6 % worse in translation.
 #: (GTSAM's iSAM2 default, 0.1 rad / 0.1 m, is coarser.) L = 1 has no older poses: unaffected.
 DEFAULT_RELIN_THRESHOLD = 1.0
 

@@ -89,11 +89,8 @@ def quat_wxyz_to_rotation(q: np.ndarray) -> np.ndarray:
     return R
 
 
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` -> rotation vectors ``(..., 3)`` with angle in [0, pi].
-
-    Through the quaternion: ``theta = 2 atan2(|q_v|, q_w)``, accurate near 0 and near pi.
-    """
+def _so3_log_quat(R: np.ndarray) -> np.ndarray:
+    """:func:`so3_log` through the quaternion: ``theta = 2 atan2(|q_v|, q_w)``, accurate near 0 and near pi."""
     q = rotation_to_quat_wxyz(R)
     qv = q[..., 1:]
     n = np.linalg.norm(qv, axis=-1)
@@ -101,6 +98,32 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     small = n < 1e-12
     scale = np.where(small, 2.0 / np.maximum(q[..., 0], 1e-300), th / np.where(small, 1.0, n))
     return qv * scale[..., None]
+
+
+#: :func:`so3_log` takes the quaternion path where ``cos(theta)`` is below this (theta above ~143 deg).
+_LOG_NEAR_PI_COS = -0.8
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` -> rotation vectors ``(..., 3)`` with angle in [0, pi].
+
+    ``d = vee(R - R^T) = 2 sin(theta) u``, ``theta = atan2(|d| / 2, (tr R - 1) / 2)`` (accurate at every
+    angle) and ``w = theta / (2 sin theta) d``: a few elementwise operations. Near pi, where ``d``
+    vanishes and the axis must come from the symmetric part, those rotations take the quaternion
+    path (Shepperd's method; ``theta = 2 atan2(|q_v|, q_w)``). The two agree to round-off (tested
+    against the quaternion path on every angle).
+    """
+    R = np.asarray(R, dtype=float)
+    d = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    c = 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0)
+    s = 0.5 * np.sqrt(np.sum(d * d, axis=-1))
+    th = np.arctan2(s, c)
+    tiny = s < 1e-8  # theta / (2 sin theta) = 1/2 + theta^2 / 12 + O(theta^4)
+    w = d * np.where(tiny, 0.5 + th * th / 12.0, th / (2.0 * np.where(tiny, 1.0, s)))[..., None]
+    near = c < _LOG_NEAR_PI_COS
+    if near.any():
+        w[near] = _so3_log_quat(R[near])
+    return w
 
 
 def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
@@ -130,6 +153,13 @@ def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
     b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / (ths * ths * ths))
     W = skew(w)
     return np.eye(3) - a[..., None, None] * W + b[..., None, None] * (W @ W)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a x b`` over the last axis (elementwise: cheaper than ``np.cross`` for small batches)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def _q_left(phi: np.ndarray, rho: np.ndarray) -> np.ndarray:
@@ -176,12 +206,22 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
 
 
 def se3_log(T: np.ndarray) -> np.ndarray:
-    """``Log`` of poses ``(..., 4, 4)`` -> tangent vectors ``(..., 6)`` = ``[omega; v]`` (GTSAM's Logmap)."""
+    """``Log`` of poses ``(..., 4, 4)`` -> tangent vectors ``(..., 6)`` = ``[omega; v]`` (GTSAM's Logmap).
+
+    ``v = J_l(w)^-1 t = J_r(w)^-1 R^T t`` with :func:`so3_right_jacobian_inv`'s series applied as cross
+    products, ``u + 1/2 w x u + c w x (w x u)`` (no 3x3 matrices built).
+    """
     T = np.asarray(T, dtype=float)
-    w = so3_log(T[..., :3, :3])
-    # v = J_l(w)^-1 t = J_r(w)^-1 R^T t
-    Rt = np.einsum("...ji,...j->...i", T[..., :3, :3], T[..., :3, 3])
-    v = np.einsum("...ij,...j->...i", so3_right_jacobian_inv(w), Rt)
+    R = T[..., :3, :3]
+    w = so3_log(R)
+    th2 = np.sum(w * w, axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    u = (T[..., None, :3, 3] @ R)[..., 0, :]  # R^T t
+    wu = _cross(w, u)
+    v = u + 0.5 * wu + c[..., None] * _cross(w, wu)
     return np.concatenate([w, v], axis=-1)
 
 

@@ -141,26 +141,35 @@ def add_chain_motion(vals: list[np.ndarray], gs: list[np.ndarray], Hs: list[np.n
 
 
 def eliminate_onto_newest(window_value: np.ndarray, gs: list[np.ndarray], Hs: list[np.ndarray],
-                          Bs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, list]:
+                          Bs: list[np.ndarray], head_inv: tuple | list = ()
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, list]:
     """Forward Schur sweep over a chain: eliminate ``x_0 .. x_{L-2}`` onto the newest pose.
 
     ``gs[j]`` (N, 6) and ``Hs[j]`` (N, 6, 6) are pose j's gradient and information (motion terms
     included), ``Bs[j]`` the coupling block ``H_{j,j+1}``, ``window_value`` (N,) the chain's value. Returns
     the eliminated value ``c``, the newest pose's gradient and (symmetrised) information, and per older
     pose the conditionals ``H_jj^-1`` and ``g_j`` after the sweep.
+
+    ``head_inv``: the sweep's ``H_jj^-1`` of the first ``k`` poses when they are already known (the
+    informations do not depend on the gradients: :mod:`pinpoint_fg.relinearize` keeps them); ``Hs[k]`` is
+    then pose k's information after those eliminations, and only the gradients are swept through them.
     """
     c = window_value.copy()
     cond_inv, cond_g = [], []
-    g_run, H_run = gs[0], Hs[0]
+    k = len(head_inv)
+    g_run, H_run = gs[0], (Hs[0] if k == 0 else None)
     for j in range(len(Hs) - 1):
-        Hinv = inv_psd(H_run)
+        Hinv = head_inv[j] if j < k else inv_psd(H_run)
         BT = np.swapaxes(Bs[j], 1, 2)
         Hig = np.einsum("nij,nj->ni", Hinv, g_run)
         c = c - 0.5 * np.sum(g_run * Hig, axis=1)
         cond_inv.append(Hinv)
         cond_g.append(g_run)
         g_run = gs[j + 1] - np.einsum("nij,nj->ni", BT, Hig)
-        H_run = Hs[j + 1] - BT @ Hinv @ Bs[j]
+        if j + 1 == k:
+            H_run = Hs[k]
+        elif j + 1 > k:
+            H_run = Hs[j + 1] - BT @ Hinv @ Bs[j]
     H_run = 0.5 * (H_run + np.swapaxes(H_run, 1, 2))
     return c, g_run, H_run, cond_inv, cond_g
 
@@ -185,9 +194,12 @@ def older_value(lin: Linearization, prev_T: np.ndarray, newest_T: np.ndarray, de
     poses ``x_{L-2}``, ``x_{L-1}``; ``delta``, ``W`` the last motion and its whitening.
     """
     dprev0 = -np.einsum("nij,nj->ni", lin.cond_inv[-1], lin.cond_g[-1])
-    r0 = res.motion_residual(prev_T @ se3_exp(dprev0), newest_T, delta, False)[0]
-    r1 = res.motion_residual(prev_T, newest_T, delta, False)[0]
-    return lin.value - lin.newest_part - motion_value(r0, W) + motion_value(r1, W)
+    # both residuals in one call: (x_{L-2} at its optimum, x_{L-2} as it is) against the newest pose
+    r = res.motion_residual(np.concatenate([prev_T @ se3_exp(dprev0), prev_T]), np.concatenate([newest_T, newest_T]),
+                            delta, False)[0]
+    v = motion_value(r, W)
+    n = prev_T.shape[0]
+    return lin.value - lin.newest_part - v[:n] + v[n:]
 
 
 def marginal_prior(v0: np.ndarray, g0: np.ndarray, H0: np.ndarray,

@@ -22,6 +22,11 @@ and information ``H`` (6x6), all particles at once. The sweep's conditionals giv
 back-substitution that moves the older poses with the newest (smoothing). This equals GTSAM's
 ``linearize`` + ``eliminatePartialMultifrontal`` on the same window (tested).
 
+**Relinearisation threshold** (:attr:`Window.relin_threshold`, :mod:`pinpoint_fg.relinearize`): at
+``L > 1`` the Gauss-Newton model of the terms among the older poses is reused, corrected to first and
+second order, while those poses moved less than the threshold since it was last evaluated exactly
+(0: every call exact, the path the GTSAM comparison pins).
+
 **Sliding** (:meth:`Window.push`): a new frame appends the pose predicted by the grasper's motion;
 when the window exceeds ``L`` poses the oldest is marginalised into a new prior on the next one
 (Schur complement, re-expressed as a mean and information; eigenvalues floored so it stays
@@ -39,12 +44,11 @@ left out), so with ``gamma = 1`` the evidence is the hypothesis's marginal likel
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 
 from factors import residuals as res
 from factors.lie import local, se3_exp
+from pinpoint_fg import window_rows
 from pinpoint_fg.elimination import (
     Linearization,
     add_chain_motion,
@@ -58,32 +62,42 @@ from pinpoint_fg.elimination import (
     whiten_prior,
 )
 from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
+from pinpoint_fg.relinearize import ChainAnchor, anchored_linearization
+from pinpoint_fg.window_memo import OldestTermsMemo
 
 #: Random-walk noise per frame when the motion model is off or kinematics are missing:
 #: [omega (rad) x3, v (m) x3] = 5 deg, 1 mm (the particle filter's random walk, DESIGN.md).
 RANDOM_WALK_SIGMA = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 
-def _merged_rows(full: tuple[np.ndarray, ...], part: tuple[np.ndarray, ...], index: np.ndarray
-                 ) -> tuple[np.ndarray, ...]:
-    """Read-only copies of the arrays ``full`` with rows ``index`` replaced by those of ``part``."""
-    merged = []
-    for f, p in zip(full, part, strict=True):
-        a = f.copy()
-        a[index] = p
-        a.flags.writeable = False
-        merged.append(a)
-    return tuple(merged)
-
+#: Default relinearisation threshold of the older poses (:mod:`pinpoint_fg.relinearize`), in units of
+#: (5 deg, 1 mm) per tangent component. Measured (``scripts/svn_window_cost.py``, N = 50, L = 5, 150-frame
+#: seed-1 runs): SVN's mean MAP errors within 2 % of the exact path (0) on normal, rotation, suturing and
+#: kinfault (worst: rotation, +1.6 % in translation and rotation; suturing better), at 0.58-0.66x its CPU time
+#: per frame; 0.5 (an earlier form of the anchoring) was slower and, on rotation, 2.6 % worse in translation.
+#: (GTSAM's iSAM2 default, 0.1 rad / 0.1 m, is coarser.) L = 1 has no older poses: unaffected.
+DEFAULT_RELIN_THRESHOLD = 1.0
 
 class Window:
     """The sliding windows of all hypotheses (see module docstring)."""
 
-    def __init__(self, length: int, process_cov: np.ndarray, forgetting: float = 0.9) -> None:
-        """``process_cov``: per-frame covariance ``Q`` (6x6, ``[omega; v]``) of the motion residual."""
+    def __init__(self, length: int, process_cov: np.ndarray, forgetting: float = 0.9,
+                 relin_threshold: float = DEFAULT_RELIN_THRESHOLD) -> None:
+        """``process_cov``: per-frame covariance ``Q`` (6x6, ``[omega; v]``) of the motion residual.
+
+        ``relin_threshold``: the Gauss-Newton model of the terms among the older poses (their frames, the
+        prior, their motion terms) is reused from its last exact evaluation while those poses moved less than
+        this times (5 deg, 1 mm) per component (:mod:`pinpoint_fg.relinearize`); 0 re-linearises every term
+        exactly on every call.
+        """
         if int(length) < 1:
             raise ValueError(f"window length must be >= 1, got {length}")
         if not 0.0 <= forgetting <= 1.0:
             raise ValueError(f"forgetting must be in [0, 1], got {forgetting}")
+        if not (np.isfinite(relin_threshold) and relin_threshold >= 0.0):
+            raise ValueError(f"relin_threshold must be finite and >= 0, got {relin_threshold}")
+        self.relin_threshold = float(relin_threshold)
+        self._anchor = ChainAnchor()
+        self._memo = OldestTermsMemo()
         self.length = int(length)
         self.forgetting = float(forgetting)
         self.evidence: np.ndarray | None = None  # (N,) accumulated marginalised cost
@@ -126,6 +140,7 @@ class Window:
         self.evidence = np.zeros(T.shape[0])
         W = np.diag(1.0 / np.asarray(prior_sigma, dtype=float))
         self.prior_W = np.broadcast_to(W, (T.shape[0], 6, 6)).copy()
+        self._anchor.clear()
 
     def reset_newest(self, cam_T_needle: np.ndarray, prior_sigma: np.ndarray) -> None:
         """Re-seed: keep only the newest frame, at new poses with a fresh weak prior."""
@@ -163,8 +178,8 @@ class Window:
         return whiten_prior(r, J, self.prior_W)
 
     def _prior_key(self, T: np.ndarray) -> tuple:
-        """Memo key of the oldest frame's terms at poses T: the frame object and the exact values."""
-        return (self.frames[0], np.ascontiguousarray(T).tobytes(), self.prior_mean.tobytes(), self.prior_W.tobytes())
+        """Memo key of the oldest frame's terms at poses T (:class:`~pinpoint_fg.window_memo.OldestTermsMemo`)."""
+        return OldestTermsMemo.key(self.frames[0], T, self.prior_mean, self.prior_W)
 
     def _unary(self, j: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frame j's terms (and, for j = 0, the prior) at poses T: value, gradient, information.
@@ -172,37 +187,24 @@ class Window:
         Memoised on the exact values of T and of the prior (the last call only): the safeguard's
         trial evaluation of the newest pose is the next linearisation's, bitwise.
         """
-        key = None
         if j == 0:
             key = self._prior_key(T)
-            memo = getattr(self, "_prior_memo", None)
-            if memo is not None and memo[0] == key:
-                return memo[1]
+            hit = self._memo.get(key)
+            if hit is not None:
+                return hit
         nll, g, H = self.frames[j].gauss_newton(T)
         if j == 0:
             pv, pg, pH = self._prior_terms(T)
-            nll, g, H = nll + pv, g + pg, H + pH
-            for a in (nll, g, H):
-                a.flags.writeable = False
-            self._prior_memo = (key, (nll, g, H))
+            return self._memo.put(key, (nll + pv, g + pg, H + pH))
         return nll, g, H
 
     def linearize(self) -> Linearization:
         """Gauss-Newton model of every window, eliminated onto the newest pose (see module docstring)."""
         assert self.poses is not None
         L = self.size
-        if L > 1:
-            # the frames no memo holds, in one batched evaluation (fewer, larger NumPy calls); fills their memos
-            memo = getattr(self, "_prior_memo", None)
-            first = 1 if memo is not None and memo[0] == self._prior_key(self.poses[0]) else 0
-            if L - first > 1:
-                gauss_newton_frames(self.frames[first:], list(self.poses[first:]))
-        vals, gs, Hs = [], [], []
-        for j in range(L):
-            v, g, H = self._unary(j, self.poses[j])
-            vals.append(v)
-            gs.append(g)
-            Hs.append(H)
+        if L > 1 and self.relin_threshold > 0:
+            return self._linearize_anchored()
+        vals, gs, Hs = self._exact_unaries()
         newest_part = vals[-1]
         Bs: list[np.ndarray] = []
         if L > 1:
@@ -213,6 +215,30 @@ class Window:
         c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs)
         return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
 
+    def _linearize_anchored(self) -> Linearization:
+        """:meth:`linearize` with the older part from its anchored model (:mod:`pinpoint_fg.relinearize`)."""
+        assert self.poses is not None and self.prior_mean is not None
+        return anchored_linearization(self._anchor, self.frames, self.poses, (self.prior_mean, self.prior_W),
+                                      self.deltas, self.delta_W, self.relin_threshold,
+                                      self._unary(self.size - 1, self.poses[-1]))
+
+    def _exact_unaries(self) -> tuple[list, list, list]:
+        """Every pose's own terms (:meth:`_unary`), the frames no memo holds in one batched evaluation."""
+        assert self.poses is not None
+        L = self.size
+        if L > 1:
+            # the frames no memo holds, in one batched evaluation (fewer, larger NumPy calls); fills their memos
+            first = 1 if self._memo.holds(self._prior_key(self.poses[0])) else 0
+            if L - first > 1:
+                gauss_newton_frames(self.frames[first:], list(self.poses[first:]))
+        vals, gs, Hs = [], [], []
+        for j in range(L):
+            v, g, H = self._unary(j, self.poses[j])
+            vals.append(v)
+            gs.append(g)
+            Hs.append(H)
+        return vals, gs, Hs
+
     def move_newest(self, step: np.ndarray, lin: Linearization) -> None:
         """Retract the newest poses by ``step (N, 6)`` and the older ones by back-substitution.
 
@@ -220,13 +246,11 @@ class Window:
         their Gauss-Newton conditional optimum given the newest (the smoothing step).
         """
         assert self.poses is not None
-        d = np.asarray(step, dtype=float)
-        new = [None] * self.size
-        new[-1] = self.poses[-1] @ se3_exp(d)
+        d = np.empty(self.poses.shape[:2] + (6,))
+        d[-1] = step
         for j in range(self.size - 2, -1, -1):
-            d = conditional_step(lin.cond_inv[j], lin.cond_g[j], lin.cond_B[j], d)
-            new[j] = self.poses[j] @ se3_exp(d)
-        self.poses = np.stack(new, axis=0)
+            d[j] = conditional_step(lin.cond_inv[j], lin.cond_g[j], lin.cond_B[j], d[j + 1])
+        self.poses = self.poses @ se3_exp(d)  # all L retractions in one call
 
     def newest_value(self, cam_T_newest: np.ndarray, lin: Linearization) -> np.ndarray:
         """Negative log-posterior (N,) if the newest poses were ``cam_T_newest`` (older at their conditional optimum).
@@ -272,102 +296,13 @@ class Window:
         self.delta_W = self.delta_W[1:]
 
     def subset(self, index: np.ndarray | list[int]) -> Window:
-        """A window over hypotheses ``index`` only: copies of their poses, priors and evidence, the same frames.
-
-        Work on a few hypotheses (polishing the MAP, trial poses) then costs what those few cost,
-        not what all N cost; write the result back with ``poses[:, index] = sub.poses``.
-        """
-        assert self.poses is not None and self.prior_mean is not None and self.prior_W is not None
-        index = np.asarray(index)
-        sub = copy.copy(self)
-        sub.poses = self.poses[:, index].copy()
-        sub.prior_mean = self.prior_mean[index].copy()
-        sub.prior_W = self.prior_W[index].copy()
-        sub.evidence = None if self.evidence is None else self.evidence[index].copy()
-        sub.frames, sub.deltas, sub.delta_W = list(self.frames), list(self.deltas), list(self.delta_W)
-        sub._prior_memo = None
-        return sub
+        """A window over hypotheses ``index`` only (:func:`pinpoint_fg.window_rows.subset`)."""
+        return window_rows.subset(self, index)
 
     def adopt(self, sub: Window, index: np.ndarray | list[int]) -> None:
-        """Write a :meth:`subset`'s poses back to hypotheses ``index``, keeping the prior-term memo valid.
-
-        The memo of the oldest frame's terms (all hypotheses) gets the subset's rows where the
-        subset holds them for its current poses, so the next marginalisation need not
-        re-evaluate the hypotheses that did not move (equal to a fresh evaluation to round-off:
-        the subset's rows were computed in a smaller batch).
-        """
-        assert self.poses is not None and sub.poses is not None
-        index = np.asarray(index)
-        memo, sub_memo = getattr(self, "_prior_memo", None), getattr(sub, "_prior_memo", None)
-        valid = (memo is not None and sub_memo is not None and memo[0] == self._prior_key(self.poses[0])
-                 and sub_memo[0] == sub._prior_key(sub.poses[0]))
-        self.poses[:, index] = sub.poses
-        if not valid:
-            self._prior_memo = None
-            return
-        self._prior_memo = (self._prior_key(self.poses[0]), _merged_rows(memo[1], sub_memo[1], index))
+        """Write a :meth:`subset`'s poses back to hypotheses ``index`` (:func:`pinpoint_fg.window_rows.adopt`)."""
+        window_rows.adopt(self, sub, index)
 
     def resample(self, index: np.ndarray) -> None:
-        """Keep hypotheses ``index`` (N',): poses and priors follow (used by re-seeding and the PF).
-
-        The memo of the oldest frame's terms follows too (its rows are reindexed, as :meth:`adopt`
-        merges rows), so the next marginalisation need not re-evaluate the kept hypotheses.
-        """
-        assert self.poses is not None and self.prior_mean is not None and self.prior_W is not None
-        memo = getattr(self, "_prior_memo", None)
-        valid = memo is not None and memo[0] == self._prior_key(self.poses[0])
-        self.poses = self.poses[:, index]
-        self.prior_mean = self.prior_mean[index]
-        self.prior_W = self.prior_W[index]
-        if self.evidence is not None:
-            self.evidence = self.evidence[index]
-        self._prior_memo = (self._prior_key(self.poses[0]), _reindexed_rows(memo[1], index)) if valid else None
-
-
-def _reindexed_rows(arrays: tuple[np.ndarray, ...], index: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Read-only copies of memoised per-hypothesis arrays, rows ``index``."""
-    rows = tuple(a[index] for a in arrays)
-    for a in rows:
-        a.flags.writeable = False
-    return rows
-
-
-def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Window,
-                    source_index: np.ndarray | list[int]) -> None:
-    """Hypotheses ``index`` of ``window`` become copies of ``source``'s ``source_index``: poses, prior, evidence.
-
-    ``source`` shares the window's frames (the window itself, or a :meth:`Window.subset` of it).
-    """
-    assert window.poses is not None and source.poses is not None and window.evidence is not None
-    index, source_index = np.asarray(index), np.asarray(source_index)
-    window.poses[:, index] = source.poses[:, source_index]
-    window.prior_mean[index] = source.prior_mean[source_index]
-    window.prior_W[index] = source.prior_W[source_index]
-    window.evidence[index] = source.evidence[source_index]
-    window._prior_memo = None
-
-
-def share_books(window: Window, index: np.ndarray | list[int], source_index: np.ndarray | list[int]) -> None:
-    """Hypotheses ``index`` take the window prior and evidence of ``source_index``, keeping their own poses.
-
-    The books of one mode (:func:`pinpoint_fg.trackers.svn_modes.share_mode_books`). The memo of the
-    oldest frame's terms stays valid: only the prior's share of the changed rows is re-evaluated
-    (equal to a fresh evaluation to round-off).
-    """
-    assert window.poses is not None and window.evidence is not None
-    index, source_index = np.asarray(index, dtype=int), np.asarray(source_index, dtype=int)
-    if index.size == 0:
-        return
-    memo = getattr(window, "_prior_memo", None)
-    valid = memo is not None and memo[0] == window._prior_key(window.poses[0])
-    T0 = window.poses[0, index]
-    old = whiten_prior(*res.pose_prior_residual(T0, window.prior_mean[index]), window.prior_W[index])
-    window.prior_mean[index] = window.prior_mean[source_index]
-    window.prior_W[index] = window.prior_W[source_index]
-    window.evidence[index] = window.evidence[source_index]
-    if not valid:
-        window._prior_memo = None
-        return
-    new = whiten_prior(*res.pose_prior_residual(T0, window.prior_mean[index]), window.prior_W[index])
-    patched = tuple(a + (n - o) for a, n, o in zip((m[index] for m in memo[1]), new, old, strict=True))
-    window._prior_memo = (window._prior_key(window.poses[0]), _merged_rows(memo[1], patched, index))
+        """Keep hypotheses ``index`` (N',) (:func:`pinpoint_fg.window_rows.resample`)."""
+        window_rows.resample(self, index)

@@ -1,7 +1,8 @@
 """Where SVN's step time goes: per-frame CPU milliseconds of its parts, over frames 20.. of one run (issue 10).
 
 Usage: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_cost_breakdown.py RUN [--particles 50] [--window 1]
-[--frames mask|nomask|all]`` (RUN e.g. from ``pinpoint-fg simulate --scenario normal --frames 150 --seed 1``).
+[--frames mask|nomask|all] [--relin 0.5]`` (RUN e.g. from ``pinpoint-fg simulate --scenario normal --frames 150
+--seed 1``).
 Each part is wrapped with a thread-CPU timer (nested calls of one part are counted once; parts overlap:
 ``linearize`` inside the polish is also in ``polish``). CPU time of this thread, so other load on the machine
 matters less than for wall time. Slower than an unwrapped run by the wrappers' own cost (~1 %).
@@ -16,17 +17,21 @@ from pathlib import Path
 
 import numpy as np
 
+from pinpoint_fg import relinearize as relinearize_module
 from pinpoint_fg import window as window_module
 from pinpoint_fg.io.recording import read_recording
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.track import make_tracker, tracker_config
 from pinpoint_fg.trackers import svn as svn_module
+from pinpoint_fg.trackers import svn_modes
 
 PARTS = (
     (svn_module.SvnTracker, "step", "step (total)"), (svn_module.SvnTracker, "_transport", "transport"),
-    (svn_module.SvnTracker, "_polish_map", "polish"), (svn_module.SvnTracker, "_prune", "prune"),
+    (svn_module.SvnTracker, "_propose", "mode proposals"), (svn_module, "settle", "settle (polish modes)"),
+    (svn_modes, "polish", "polish"), (svn_module.SvnTracker, "_prune", "prune"),
     (window_module.Window, "push", "push + marginalise"), (window_module.Window, "linearize", "linearize"),
     (window_module.Window, "newest_value", "newest_value (trial)"),
+    (relinearize_module.ChainAnchor, "_evaluate", "older part re-linearised"),
     (window_module.Window, "move_newest", "move_newest"),
     (svn_module, "stein_step", "stein_step"), (svn_module, "local", "local (chart)"),
     (svn_module, "se3_right_jacobian", "se3_right_jacobian"), (svn_module, "floor_hessians", "floor_hessians (svn)"),
@@ -41,6 +46,7 @@ def main() -> None:
     ap.add_argument("--particles", type=int, default=50)
     ap.add_argument("--window", type=int, default=1)
     ap.add_argument("--frames", choices=("all", "mask", "nomask"), default="all")
+    ap.add_argument("--relin", type=float, default=0.0, help="Window.relin_threshold (0: exact)")
     args = ap.parse_args()
     spent: collections.Counter = collections.Counter()
     depth: collections.Counter = collections.Counter()
@@ -66,6 +72,7 @@ def main() -> None:
         wrap(owner, name, tag)
     rec = read_recording(args.run)
     tracker = make_tracker("svn", tracker_config(rec, "svn", args.particles, args.window, seed=0))
+    tracker.window.relin_threshold = args.relin
     n = 0
     for k, frame in enumerate(rec.frames):
         obs = observe_frame(rec, frame, max_points=200)

@@ -1,4 +1,4 @@
-"""The SE(3) exponential of :mod:`factors.lie` as it was before it was restructured for speed.
+"""The SE(3) exponential and logarithms of :mod:`factors.lie` as they were before they were restructured for speed.
 
 Kept only to pin the library's fast path (``tests/test_factors_lie_fastpaths.py``): the
 reference builds the translation as ``R Jr(w) v`` from two separate SO(3) series.
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factors.lie import so3_exp, so3_right_jacobian
+from factors.lie import rotation_to_quat_wxyz, so3_exp, so3_right_jacobian, so3_right_jacobian_inv
 
 
 def se3_exp_reference(xi: np.ndarray) -> np.ndarray:
@@ -23,3 +23,24 @@ def se3_exp_reference(xi: np.ndarray) -> np.ndarray:
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
     return T
+
+
+def so3_log_reference(R: np.ndarray) -> np.ndarray:
+    """``Log`` of rotations through the quaternion for every angle (the form before the trace/skew fast path)."""
+    q = rotation_to_quat_wxyz(R)
+    qv = q[..., 1:]
+    n = np.linalg.norm(qv, axis=-1)
+    th = 2.0 * np.arctan2(n, q[..., 0])
+    small = n < 1e-12
+    scale = np.where(small, 2.0 / np.maximum(q[..., 0], 1e-300), th / np.where(small, 1.0, n))
+    return qv * scale[..., None]
+
+
+def se3_log_reference(T: np.ndarray) -> np.ndarray:
+    """``Log`` of poses with ``v = Jr^-1(w) R^T t`` from the 3x3 matrix (the form before the cross-product path)."""
+    T = np.asarray(T, dtype=float)
+    w = so3_log_reference(T[..., :3, :3])
+    Rt = np.einsum("...ji,...j->...i", T[..., :3, :3], T[..., :3, 3])
+    v = np.einsum("...ij,...j->...i", so3_right_jacobian_inv(w), Rt)
+    return np.concatenate([w, v], axis=-1)
+

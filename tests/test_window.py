@@ -47,7 +47,7 @@ def _observation(k: int, rng: np.random.Generator, image: bool = True) -> Observ
 
 def _window(L: int, N: int, rng: np.random.Generator, frames: int, image_every: int = 2) -> tuple[Window, list]:
     noise = NoiseConfig()
-    w = Window(L, noise.process_cov)
+    w = Window(L, noise.process_cov, relin_threshold=0.0)  # the exact path (test_relinearize.py: the anchored one)
     obs = [_observation(k, rng, image=(k % image_every == 0)) for k in range(frames)]
     start = _truth(0) @ se3_exp(rng.normal(size=(N, 6)) * np.r_[[0.05] * 3, [1e-3] * 3])
     w.start(start, FrameLikelihood(obs[0], MODEL), np.r_[[0.3] * 3, [0.01] * 3])
@@ -197,7 +197,7 @@ def test_adopt_keeps_the_oldest_frame_memo_equal_to_a_fresh_evaluation(L: int) -
     sub.linearize()
     w.adopt(sub, [5])
     assert np.array_equal(w.poses[:, 5], sub.poses[:, 0])
-    assert w._prior_memo is not None  # merged, not dropped
+    assert w._memo.entry is not None  # merged, not dropped
     memo = w._unary(0, w.poses[0])
     fresh = _fresh_copy(w)._unary(0, w.poses[0])
     for a, b in zip(memo, fresh, strict=True):
@@ -221,18 +221,18 @@ def test_resample_keeps_the_oldest_frame_memo_equal_to_a_fresh_evaluation(L: int
     w.linearize()
     index = np.array([0, 0, 3, 5, 5, 5, 7, 2])
     w.resample(index)
-    assert w._prior_memo is not None  # reindexed, not dropped
+    assert w._memo.entry is not None  # reindexed, not dropped
     memo = w._unary(0, w.poses[0])
     fresh = _fresh_copy(w)._unary(0, w.poses[0])
     for a, b in zip(memo, fresh, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     w.poses[0, 1] = w.poses[0, 1] @ se3_exp(np.full(6, 1e-3))  # a moved pose misses the memo
-    assert w._prior_memo[0] != w._prior_key(w.poses[0])
+    assert not w._memo.holds(w._prior_key(w.poses[0]))
 
 
 @pytest.mark.parametrize("L", [1, 3])
 def test_share_books_copies_prior_and_evidence_and_keeps_the_memo_equal_to_a_fresh_evaluation(L: int) -> None:
-    from pinpoint_fg.window import share_books
+    from pinpoint_fg.window_rows import share_books
 
     rng = np.random.default_rng(25)
     w, _ = _window(L, 8, rng, frames=4)
@@ -245,7 +245,7 @@ def test_share_books_copies_prior_and_evidence_and_keeps_the_memo_equal_to_a_fre
         assert np.array_equal(w.prior_mean[dst], w.prior_mean[src])
         assert np.array_equal(w.prior_W[dst], w.prior_W[src])
         assert w.evidence[dst] == w.evidence[src]
-    assert w._prior_memo is not None and w._prior_memo[0] == w._prior_key(w.poses[0])  # patched, not dropped
+    assert w._memo.holds(w._prior_key(w.poses[0]))  # patched, not dropped
     memo = w._unary(0, w.poses[0])
     fresh = _fresh_copy(w)._unary(0, w.poses[0])
     for a, b in zip(memo, fresh, strict=True):

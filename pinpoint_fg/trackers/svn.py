@@ -86,7 +86,7 @@ from pinpoint_fg.trackers.svn_modes import (
     settle,
     share_mode_books,
 )
-from pinpoint_fg.window import Window
+from pinpoint_fg.window import DEFAULT_RELIN_THRESHOLD, Window
 
 #: Weak prior on the very first pose of each hypothesis: [omega x3 (rad), v x3 (m)].
 FIRST_PRIOR_SIGMA = np.array([np.deg2rad(30.0)] * 3 + [10e-3] * 3)
@@ -149,6 +149,9 @@ class SvnSettings:
     """The MAP is the best hypothesis of the mode with the highest Laplace evidence (the most posterior mass)
     instead of the lowest-cost hypothesis (the highest posterior density, default). They differ only when a
     broad mode outweighs a higher, narrower peak; on a first frame that is the twin circle as often as not."""
+    relin_threshold: float = DEFAULT_RELIN_THRESHOLD
+    """L > 1: the older poses' Gauss-Newton model is reused while they moved less than this times (5 deg, 1 mm)
+    per component (:mod:`pinpoint_fg.relinearize`; 0: exact on every iteration)."""
     modes: ModeSettings = field(default_factory=ModeSettings)
     """Mode proposals, Laplace admission and the per-mode floor of hypotheses (:mod:`.svn_modes`)."""
 
@@ -176,7 +179,7 @@ class SvnTracker(Tracker):
             step_size=self.svn.step_size,
             isotropic=self.svn.isotropic,
         )
-        self.window = Window(config.window, noise.process_cov, self.svn.forgetting)
+        self.window = Window(config.window, noise.process_cov, self.svn.forgetting, self.svn.relin_threshold)
         self._times: list[tuple[int, float]] = []
         self._lin = None  # the transport's final linearisation (reused by the MAP polish)
 

@@ -66,7 +66,8 @@ from factors.lie import local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.proposals import mode_proposals
 from pinpoint_fg.stein import floor_hessians
-from pinpoint_fg.window import Linearization, Window, copy_hypotheses, share_books
+from pinpoint_fg.window import Linearization, Window
+from pinpoint_fg.window_rows import copy_hypotheses, share_books
 
 #: Kernel scale S of the scaled tangent units: [omega x3 (rad), v x3 (m)] (svn.py's default).
 SCALE = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)

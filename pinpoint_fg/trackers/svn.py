@@ -53,7 +53,11 @@ Per frame (DESIGN.md §Inference):
    log-evidence (particle counts are not weights: transport cannot move mass between basins),
    its peak its polished best hypothesis, its covariance its members' tangent covariance (or
    the inverse information when it has fewer than 7 members). Then q95 spread and covariance
-   around the MAP; with L > 1 the smoothed pose of frame k - L + 1. When every hypothesis is
+   around the MAP; with L > 1 the smoothed pose of frame k - L + 1. Last, every member of a settled
+   mode takes its polished peak's window prior and evidence for the next frame
+   (:func:`~pinpoint_fg.trackers.svn_modes.share_mode_books`: the books are kept per mode, as MHT keeps
+   them per branch; per particle they drift apart by hundreds of nats over a run because each
+   member's marginalisations are made where repulsion put it). When every hypothesis is
    implausible (the best one's cost far above what the frame's residual count allows) the
    particles are re-seeded from this frame.
 

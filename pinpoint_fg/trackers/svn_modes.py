@@ -27,7 +27,9 @@ the evidence ``e_i`` holds ``+1/2 log det`` of every pose marginalised so far (w
 ``log Z`` is the hypothesis's whole marginal likelihood, frame by frame under Laplace
 approximations. Measurement and motion normalisers and the whitening units are the same for
 every hypothesis and left out. A mode's evidence is its best member's; mode weights are
-``softmax(log Z)`` over modes.
+``softmax(log Z)`` over modes. The books are kept per mode (:func:`share_mode_books`): after each
+frame the members of a settled mode take its polished peak's window prior and evidence, so a
+mode's evidence is the marginal likelihood along its peak, not the luckiest member's.
 
 **Proposals** (:func:`propose`). Only on frames with a backbone (>= 5 px) and the conic term:
 every proposal keeps the projected ellipse, which is what makes it an ambiguity; without a

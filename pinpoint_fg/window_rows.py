@@ -9,16 +9,33 @@ polishes hypotheses never re-evaluates the ones that did not change.
 from __future__ import annotations
 
 import copy
-from typing import TYPE_CHECKING
+from typing import Protocol, TypeVar
 
 import numpy as np
 
 from factors import residuals as res
 from pinpoint_fg.elimination import whiten_prior
+from pinpoint_fg.relinearize import ChainAnchor
 from pinpoint_fg.window_memo import OldestTermsMemo
 
-if TYPE_CHECKING:
-    from pinpoint_fg.window import Window
+
+class Rows(Protocol):
+    """What these functions use of a :class:`~pinpoint_fg.window.Window` (its per-hypothesis state)."""
+
+    poses: np.ndarray | None
+    prior_mean: np.ndarray | None
+    prior_W: np.ndarray | None
+    evidence: np.ndarray | None
+    frames: list
+    deltas: list
+    delta_W: list
+    _memo: OldestTermsMemo
+    _anchor: ChainAnchor
+
+    def _prior_key(self, T: np.ndarray) -> tuple: ...
+
+
+Window = TypeVar("Window", bound=Rows)
 
 
 def subset(window: Window, index: np.ndarray | list[int]) -> Window:

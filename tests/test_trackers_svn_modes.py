@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from factors.lie import local, se3_exp
 from pinpoint_fg.likelihood import FrameLikelihood, Switches
@@ -266,3 +267,31 @@ def test_a_proposal_whose_predicted_peak_is_a_held_mode_is_not_polished(monkeypa
     monkeypatch.setattr(svn_modes, "mode_proposals", lambda *a, **k: twin[None])
     svn_modes.propose(w, lin, found, lik, ModeSettings(screen_nats=1e9))
     assert polished and polished[0] == 1  # the other circle is polished
+
+
+def test_settle_polishes_the_best_mode_from_several_starts_and_keeps_the_best_as_its_representative() -> None:
+    """starts=3: the best mode is also polished from its two lowest-cost members whose predicted peaks differ from
+    its best hypothesis's; the mode's representative (and evidence) is the polished start with the highest evidence."""
+    from pinpoint_fg.trackers.svn_modes import settle
+
+    T, _, arc = _ambiguous_scene()
+    cfg = TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(grasp_perpendicular=False, tip=False, tail=False))
+    lik = FrameLikelihood(Observation(0, 0.0, backbone_px=arc, cam_T_grasper=_grasper(T)), cfg.model)
+    rng = np.random.default_rng(6)
+    w = Window(1, np.diag(np.r_[[0.02 ** 2] * 3, [0.3e-3 ** 2] * 3]), forgetting=1.0)
+    w.start(T @ se3_exp(rng.normal(size=(10, 6)) * np.r_[[np.deg2rad(3.0)] * 3, [0.3e-3] * 3]), lik,
+            FIRST_PRIOR_SIGMA)
+    w.prior_mean[:] = T
+    w.evidence = rng.normal(size=10)  # each start carries its own books
+    lin = w.linearize()
+    found = basins(w.newest, lin, w.evidence)
+    assert found.reps.shape == (1,)
+    one, polished1, _ = settle(w.subset(np.arange(10)), lin, found, iters=30, starts=1)
+    many, polished, lin_r = settle(w, lin, found, iters=30, starts=3)
+    assert polished1.tolist() == [int(found.reps[0])]
+    assert polished.shape == (3,) and polished[0] == found.reps[0]
+    assert np.all(found.labels[polished] == 0)
+    z = laplace_terms(lin_r, w.evidence[polished])[2]
+    assert many.reps[0] == polished[int(np.argmax(z))]
+    assert many.mode_log_evidence[0] == pytest.approx(np.max(z), abs=1e-9)
+    assert many.mode_log_evidence[0] >= one.mode_log_evidence[0] - 1e-9

@@ -342,7 +342,8 @@ class SvnTracker(Tracker):
         polished = np.zeros(0, dtype=int)
         if self.svn.map_polish_iters > 0:  # every compared mode's best hypothesis moved to its peak
             found, polished, lin_r = settle(self.window, self._lin, found, self.svn.map_polish_iters,
-                                            self.svn.polish_decrement, 2 * self.svn.modes.max_modes)
+                                            self.svn.polish_decrement, 2 * self.svn.modes.max_modes,
+                                            self.svn.modes.map_starts)
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])
@@ -351,7 +352,7 @@ class SvnTracker(Tracker):
         index = self._prune(np.where(found.converged, found.log_evidence, np.inf), value)
         modes = self._modes(found, index, i)
         if self.svn.modes.shared_books:
-            share_mode_books(self.window, found, polished, index)
+            share_mode_books(self.window, found, found.reps[np.isin(found.reps, polished)], index)
         latency_ms = 1e3 * (time.perf_counter() - t0)
         self.frames_seen += 1
         self._times.append((observation.frame, observation.t_s))

@@ -97,6 +97,8 @@ class ModeSettings:
     """Levenberg-Marquardt steps that polish each proposal on its window."""
     max_candidates: int = 6
     """At most this many screened proposals (the lowest predicted cost first) are polished per frame."""
+    map_starts: int = 3
+    """The best mode is polished from this many of its members (:func:`settle`; 1: its best hypothesis only)."""
     shared_books: bool = True
     """After each frame every member of a settled mode takes its polished peak's window prior and evidence
     (:func:`share_mode_books`; False: each hypothesis keeps its own)."""
@@ -214,7 +216,7 @@ def polish(sub: Window, lin: Linearization, iters: int, decrement: float = 1e-3)
 
 
 def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrement: float = 1e-3,
-           max_modes: int = 8) -> tuple[Basins, np.ndarray, Linearization]:
+           max_modes: int = 8, starts: int = 1) -> tuple[Basins, np.ndarray, Linearization]:
     """Polish the best hypothesis of each of the ``max_modes`` best modes on its window and re-score the modes.
 
     A mode's evidence from the Gauss-Newton prediction is only as good as its best particle's
@@ -223,22 +225,47 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
     mode with an unpolished one favours the polished. So every compared mode's best hypothesis
     is moved to its peak (:func:`polish`, batched; written back to the window) and every member
     of a mode carries its mode's polished log-evidence (modes beyond ``max_modes`` keep their
-    prediction). Returns the re-scored basins, the polished hypotheses' indices and their final model.
+    prediction).
+
+    ``starts > 1``: the best mode is also polished from up to ``starts - 1`` more of its members — the
+    lowest-cost ones whose predicted peak is at least half a scaled unit from the best hypothesis's. A
+    mode groups peaks within ``separation`` (10 deg, 2 mm); through an edge-on turn it can hold two
+    local optima a few degrees apart, and the best hypothesis's polish finds only the one it started
+    in. The mode's representative is then the polished start with the highest evidence.
+
+    Returns the re-scored basins (``reps`` updated), the polished hypotheses' indices and their final model.
     """
     z = found.mode_log_evidence
     chosen = np.argsort(-np.nan_to_num(z, neginf=-1e300), kind="stable")[:max_modes]
     reps = found.reps[chosen]
-    sub = window.subset(reps)
-    lin_r = polish(sub, lin.subset(reps), iters, decrement)
+    cand, cand_mode = list(reps), list(chosen)
+    if starts > 1 and chosen.size:
+        m0, r0 = int(chosen[0]), int(reps[0])
+        members = np.flatnonzero(found.labels == m0)
+        members = members[members != r0]
+        far = scaled_distance(found.peaks[r0], found.peaks[members]) > 0.5
+        members = members[far]
+        extra = members[np.argsort((lin.value + window.evidence)[members], kind="stable")[: starts - 1]]
+        cand += [int(e) for e in extra]
+        cand_mode += [m0] * extra.size
+    cand_a, cand_mode_a = np.asarray(cand, dtype=int), np.asarray(cand_mode, dtype=int)
+    sub = window.subset(cand_a)
+    lin_r = polish(sub, lin.subset(cand_a), iters, decrement)
     _, _, z_r = laplace_terms(lin_r, sub.evidence)
-    window.adopt(sub, reps)
+    window.adopt(sub, cand_a)
     mode_z = z.copy()
-    mode_z[chosen] = z_r
+    new_reps = found.reps.copy()
     peaks = found.peaks.copy()
-    peaks[reps] = sub.newest
+    peaks[cand_a] = sub.newest
+    for m in chosen:
+        rows = np.flatnonzero(cand_mode_a == m)
+        best = rows[int(np.argmax(np.nan_to_num(z_r[rows], nan=-np.inf)))] if np.isfinite(z_r[rows]).any() else rows[0]
+        mode_z[m] = z_r[best]
+        new_reps[m] = cand_a[best]
     converged = found.converged[found.reps].copy()
     converged[chosen] = True
-    return Basins(mode_z[found.labels], peaks, found.labels, found.reps, converged[found.labels]), reps, lin_r
+    settled = Basins(mode_z[found.labels], peaks, found.labels, new_reps, converged[found.labels])
+    return settled, cand_a, lin_r
 
 
 def share_mode_books(window: Window, found: Basins, reps: np.ndarray, index: np.ndarray | None = None) -> int:

@@ -15,6 +15,9 @@ import os
 import sys
 import threading
 import time
+from collections import deque
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -25,10 +28,11 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.recording.schema import FrameRecord, Recording
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.observation import Observation
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.posterior.bimodality import assess_bimodality
 from pinpoint_fg.posterior.summary import modes_of_estimate, posterior_columns
@@ -115,15 +119,24 @@ def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bo
     return dataclasses.replace(est, bimodal=bimodal, extra=extra, modes=modes)
 
 
-def _worker_init(parent_pid: int) -> None:
-    """Worker initializer: one BLAS / OpenMP thread, scikit-learn loaded and warmed up, and an exit as soon as
-    the tracking process is gone (e.g. SIGKILL), so no orphan keeps running or keeps the caller's pipes open.
+#: Frames whose observations the worker prepares ahead of the tracker.
+OBSERVE_AHEAD = 3
+
+_RECORDING: Recording | None = None  # the worker process's copy of the recording (set by _worker_init)
+
+
+def _worker_init(parent_pid: int, recording: Recording | None) -> None:
+    """Worker initializer: keep the recording, use one BLAS / OpenMP thread, and exit as soon as the tracking
+    process is gone (e.g. SIGKILL), so no orphan keeps running or keeps the caller's pipes open. (scikit-learn
+    is imported by the first verdict, so the worker can observe frames ~1 s sooner.)
 
     One thread: the worker shares the cores with the tracker; with its default pools (one thread per
     core) both processes' spinning BLAS threads fought for 2 cores, the tracker's steps took up to 3x
     longer and the worker fell behind (measured: 13.7 s of steps instead of 3.7 s, 6.8 s waiting for
     verdicts at the end of a 100-frame run).
     """
+    global _RECORDING
+    _RECORDING = recording
 
     def watch() -> None:
         while os.getppid() == parent_pid:
@@ -134,25 +147,38 @@ def _worker_init(parent_pid: int) -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1)
-    # warm-up during the first steps: the first fit imports scikit-learn's mixture and k-means++
-    rng = np.random.default_rng(0)
-    cloud = np.tile(np.eye(4), (12, 1, 1))
-    cloud[:, :3, 3] = 1e-3 * rng.normal(size=(12, 3))
-    bimodality_verdict(cloud, np.eye(4), None)
 
 
-class _Verdicts:
-    """Per-frame summaries off the tracking thread: a worker process turns frame k's estimate into its result
-    row (:func:`to_frame_estimate`: GMM verdict, mode clustering, weak direction) while the tracker steps k+1.
+def _observe(rec: FrameRecord, max_points: int) -> Observation:
+    """Worker task: :func:`observe_frame` of ``rec`` on the worker's copy of the recording."""
+    assert _RECORDING is not None, "the worker was started without a recording"
+    return observe_frame(_RECORDING, rec, max_points=max_points)
 
-    The summaries (scikit-learn GMM fits, 20-30 ms) are not part of a tracker's step; computed
-    inline they made ``track`` take 2x the step latencies it reported. With ``workers = 0`` they run
-    inline. Rows are written in frame order either way, and are identical (seeded fits with one
-    BLAS thread, deterministic clustering). The worker's start-up (spawn, imports, warm-up fit) overlaps
-    the first steps; rows are collected without waiting until the last frame.
+
+def _thread_limit(threads: int | None) -> AbstractContextManager:
+    """Context limiting the process's BLAS / OpenMP pools to ``threads`` (None: no change)."""
+    if threads is None:
+        return nullcontext()
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=int(threads))
+
+
+class _Offload:
+    """The work around a tracker's step, off the tracking thread: a worker process reads and observes frames
+    ahead (mask PNG check and decode, backbone) and turns frame k's estimate into its result row
+    (:func:`to_frame_estimate`: GMM verdict, modes, weak direction) while the tracker steps.
+
+    Neither is part of a step's latency; computed inline they made ``track`` take 2x the step
+    latencies it reported (GMM fits 20-30 ms, mask frames 10 ms). With ``workers = 0`` everything
+    runs inline. Whatever the worker has not finished when it is needed is computed here instead
+    (its start-up, ~2 s, or when it falls behind; at the end, the rows it has not started): the
+    results are the same either way (deterministic observation, seeded fits with one BLAS thread,
+    deterministic clustering), and rows are written in frame order.
     """
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, recording: Recording, max_points: int) -> None:
+        self.recording, self.max_points = recording, max_points
         self.pool = None
         if workers > 0:
             import multiprocessing as mp
@@ -160,32 +186,55 @@ class _Verdicts:
 
             # spawn: the worker never inherits GTSAM state or BLAS locks; it imports scikit-learn while we track
             self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                            initializer=_worker_init, initargs=(os.getpid(),))
-            self.pool.submit(os.getpid)  # workers start on the first submit: start them now
+                                            initializer=_worker_init, initargs=(os.getpid(), recording))
         self.pending: list = []
+
+    def observations(self, frames: list[FrameRecord]) -> Iterator[Observation]:
+        """The observations of ``frames``, in order (the worker's when it has finished them, else made here)."""
+        if self.pool is None:
+            for rec in frames:
+                yield observe_frame(self.recording, rec, max_points=self.max_points)
+            return
+        ahead: deque = deque()
+        for k, rec in enumerate(frames):
+            while len(ahead) <= OBSERVE_AHEAD and k + len(ahead) < len(frames):
+                ahead.append(self.pool.submit(_observe, frames[k + len(ahead)], self.max_points))
+            fut = ahead.popleft()
+            if fut.done() and fut.exception() is None:
+                yield fut.result()
+            else:  # not ready (or failed: the inline call raises the same error, from this process)
+                fut.cancel()
+                yield observe_frame(self.recording, rec, max_points=self.max_points)
 
     def submit(self, est: Estimate) -> None:
         if self.pool is None or est.particles.shape[0] < 6:
             self.pending.append(to_frame_estimate(est))
         else:
-            self.pending.append(self.pool.submit(to_frame_estimate, est))
+            self.pending.append((est, self.pool.submit(to_frame_estimate, est)))
 
     def ready(self, wait: bool = False) -> list[Estimate]:
-        """Rows whose summaries are in, in frame order (all of them with ``wait``)."""
+        """Rows whose summaries are in, in frame order (all of them with ``wait``: those the worker has not
+        started are computed here, alongside the one it is working on)."""
+        if wait:
+            self.pending = [to_frame_estimate(row[0]) if not isinstance(row, Estimate) and row[1].cancel() else row
+                            for row in self.pending]
         out = []
         while self.pending:
             row = self.pending[0]
             if not isinstance(row, Estimate):
-                if not (wait or row.done()):
+                if not (wait or row[1].done()):
                     break
-                row = row.result()
+                row = row[1].result()
             out.append(row)
             self.pending.pop(0)
         return out
 
-    def close(self) -> None:
+    def close(self, failed: bool) -> None:
+        """Stop the worker. After a failure wait for it; after success do not: every row is written, and its
+        exit (interpreter clean-up, ~0.3 s) overlaps whatever the caller does next (an interpreter joins it
+        at exit)."""
         if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.pool.shutdown(wait=failed, cancel_futures=True)
 
 
 def track_recording(
@@ -203,6 +252,7 @@ def track_recording(
     overwrite: bool = False,
     verdict_workers: int = 0,
     robust: dict[str, RobustLoss] | None = None,
+    blas_threads: int | None = 1,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
@@ -214,6 +264,10 @@ def track_recording(
     ``if __name__ == "__main__":`` guard).
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults.
+    ``blas_threads`` limits the BLAS / OpenMP thread pools while tracking (threadpoolctl; None: leave them).
+    Default 1: a frame's matrices are small (6x6 blocks, N x M pixel products), so a second thread only
+    spins; on the shared 2-core machine one thread made SVN's steps 2.3x, PF's and MAP's 1.2x faster,
+    with bitwise the same results (``estimates.csv`` apart from ``latency_ms``, ``modes.csv``, particles).
     """
     out = prepare_output_dir(out, overwrite, "result")
     recording = read_recording(run)
@@ -228,19 +282,22 @@ def track_recording(
     settings = tracker.settings()
     settings["noise_file"] = None if noise_file is None else str(noise_file)
     show = sys.stderr.isatty() if progress is None else bool(progress)
-    with ResultWriter(out, method, settings, recording.info.name, str(Path(run).resolve()),
-                      weighted=(method in WEIGHTED_METHODS), smoothed=config.window > 1) as writer:
-        verdicts = _Verdicts(verdict_workers)
+    with _thread_limit(blas_threads), ResultWriter(out, method, settings, recording.info.name,
+                                                   str(Path(run).resolve()), weighted=(method in WEIGHTED_METHODS),
+                                                   smoothed=config.window > 1) as writer:
+        offload = _Offload(verdict_workers, recording, max_points)
+        failed = True
         try:
-            for rec in tqdm(frames, desc=f"{method} {recording.info.name}", unit="frame", disable=not show):
-                obs = observe_frame(recording, rec, max_points=max_points)
-                verdicts.submit(tracker.step(obs))
-                for row in verdicts.ready():
+            for obs in tqdm(offload.observations(frames), desc=f"{method} {recording.info.name}", unit="frame",
+                            total=len(frames), disable=not show):
+                offload.submit(tracker.step(obs))
+                for row in offload.ready():
                     writer.write(row)
-            for row in verdicts.ready(wait=True):
+            for row in offload.ready(wait=True):
                 writer.write(row)
+            failed = False
         finally:
-            verdicts.close()
+            offload.close(failed)
         final = getattr(tracker, "final_smoothed", None)
         if config.window > 1 and callable(final):
             for f, t, T in final():

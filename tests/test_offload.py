@@ -1,4 +1,4 @@
-"""The work ``track`` moves off the tracking thread gives the same result files as doing it inline.
+"""pinpoint_fg.offload: the work `track` moves off the tracking thread gives the same result files as inline.
 
 A worker process observes frames ahead (mask check, decode, backbone) and summarises each estimate
 (GMM verdict, modes, weak direction) behind the tracker; whatever it has not finished is computed
@@ -21,16 +21,9 @@ from threadpoolctl import threadpool_info
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.observe import observe_frame
+from pinpoint_fg.offload import Offload, _observe, _worker_init, to_frame_estimate
 from pinpoint_fg.sim.scenarios import simulate
-from pinpoint_fg.track import (
-    _observe,
-    _Offload,
-    _worker_init,
-    make_tracker,
-    to_frame_estimate,
-    track_recording,
-    tracker_config,
-)
+from pinpoint_fg.track import make_tracker, track_recording, tracker_config
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +55,7 @@ def test_worker_functions_equal_inline(run: Path) -> None:
     recording = read_recording(run)
     frames = recording.frames
     pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_worker_init,
-                               initargs=(os.getpid(), recording))
+                               initargs=(os.getpid(), str(run)))
     try:
         observed = [pool.submit(_observe, rec, 200) for rec in frames]
         tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
@@ -92,10 +85,10 @@ def test_worker_functions_equal_inline(run: Path) -> None:
 def test_offload_writes_rows_in_frame_order_whoever_computes_them(run: Path) -> None:
     """Rows come back in submission order, whether the worker made them or (not started yet) this process."""
     recording = read_recording(run)
-    offload = _Offload(1, recording, 200)
+    offload = Offload(1, run, 200)
     try:
         tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
-        obs = list(offload.observations(recording.frames))
+        obs = list(offload.observations(recording, recording.frames))
         assert [o.frame for o in obs] == [r.frame for r in recording.frames]
         ests = [tracker.step(o) for o in obs]
         offload.pool.submit(os.getpid).result()  # the worker is up
@@ -116,3 +109,22 @@ def test_track_leaves_the_callers_thread_pools_alone(run: Path, tmp_path: Path) 
     before = [(p["filepath"], p["num_threads"]) for p in threadpool_info()]
     track_recording(run, "map", tmp_path / "map", max_frames=3, progress=False, blas_threads=1)
     assert [(p["filepath"], p["num_threads"]) for p in threadpool_info()][: len(before)] == before
+
+
+def test_observations_fall_back_inline_when_the_worker_cannot_observe(run: Path, tmp_path: Path) -> None:
+    """A worker without the recording (here: pointed at a missing run) only fails its tasks; every observation
+    is then made in this process, equal to ``observe_frame``'s."""
+    recording = read_recording(run)
+    offload = Offload(1, tmp_path / "missing", 200)
+    try:
+        offload.pool.submit(os.getpid).result()  # the worker is up (and has no recording)
+        failed = offload.pool.submit(_observe, recording.frames[0], 200)
+        assert isinstance(failed.exception(), RuntimeError)
+        got = list(offload.observations(recording, recording.frames))
+    finally:
+        offload.close(failed=True)
+    for rec, obs in zip(recording.frames, got, strict=True):
+        here = observe_frame(recording, rec, max_points=200)
+        assert obs.frame == here.frame
+        x, y = obs.backbone_px, here.backbone_px
+        assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))

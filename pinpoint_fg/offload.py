@@ -3,7 +3,7 @@
 :func:`to_frame_estimate` completes a tracker's :class:`~pinpoint_fg.estimate.Estimate` into the row a
 result holds (GMM bimodality verdict, modes, summary columns). :class:`Offload` does that and the
 frames' observations (:func:`pinpoint_fg.observe.observe_frame`: mask PNG check and decode,
-backbone) either inline or in a worker process beside the tracker: observations ``OBSERVE_AHEAD``
+backbone) either inline or in worker processes beside the tracker: observations ``OBSERVE_AHEAD``
 frames ahead, rows behind. Whatever the worker has not finished when it is needed (its start-up,
 or when it falls behind), or could not do, is computed inline instead, so the worker only ever
 saves time: results are the same either way, and an error is raised from the tracking process.
@@ -59,9 +59,9 @@ def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bo
 _RECORDING: Recording | None = None  # the worker process's copy of the recording (read by _worker_init)
 
 
-def _worker_init(parent_pid: int, run: str) -> None:
+def _worker_init(parent_pid: int, run: str | None) -> None:
     """Worker initializer: exit as soon as the tracking process is gone (e.g. SIGKILL), so no orphan keeps running
-    or keeps the caller's pipes open; use one BLAS / OpenMP thread; read the recording ``run``.
+    or keeps the caller's pipes open; use one BLAS / OpenMP thread; read the recording ``run`` (if not None).
 
     One thread: the worker shares the cores with the tracker; with its default pools (one thread per
     core) both processes' spinning BLAS threads fought for 2 cores, the tracker's steps took up to 3x
@@ -82,7 +82,7 @@ def _worker_init(parent_pid: int, run: str) -> None:
 
     threadpool_limits(limits=1)
     try:
-        _RECORDING = read_recording(run)
+        _RECORDING = None if run is None else read_recording(run)
     except Exception:  # noqa: BLE001 - the tracking process reads it too and reports the error
         _RECORDING = None
 
@@ -95,24 +95,32 @@ def _observe(rec: FrameRecord, max_points: int) -> Observation:
 
 
 class Offload:
-    """Observations and result rows of a run, inline (``workers = 0``) or in ``workers`` spawned processes.
+    """Observations and result rows of a run, inline (``workers = 0``) or in spawned processes: ``workers`` for
+    the rows and, with any, one more for the observations.
 
     Computed inline, the GMM fits (20-30 ms a frame) and mask frames (~10 ms) made ``track`` take
-    2x the step latencies it reported. The worker starts at construction (spawned: it inherits no
-    GTSAM state or BLAS locks; a calling script needs the usual ``if __name__ == "__main__":``
-    guard). Rows come out in submission order whoever made them.
+    2x the step latencies it reported. Observations get their own process because they are on the
+    tracker's path and rows are not: queued behind GMM fits on a busy machine, most of them were
+    not ready in time and were made inline. The workers start at construction (spawned: they
+    inherit no GTSAM state or BLAS locks; a calling script needs the usual
+    ``if __name__ == "__main__":`` guard). Rows come out in submission order whoever made them.
     """
 
     def __init__(self, workers: int, run: str | Path, max_points: int) -> None:
         self.max_points = max_points
-        self.pool = None
+        self.pool = self.observer = None
         if workers > 0:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                            initializer=_worker_init, initargs=(os.getpid(), str(run)))
-            self.pool.submit(os.getpid)  # workers start on the first submit: start them now
+            def start(n: int, run: str | None) -> ProcessPoolExecutor:
+                pool = ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"),
+                                           initializer=_worker_init, initargs=(os.getpid(), run))
+                pool.submit(os.getpid)  # workers start on the first submit: start them now
+                return pool
+
+            self.observer = start(1, str(run))
+            self.pool = start(workers, None)
         self.pending: list[Estimate | tuple[Estimate, Future]] = []
 
     def observations(self, recording: Recording, frames: list[FrameRecord]) -> Iterator[Observation]:
@@ -120,8 +128,8 @@ class Offload:
         else made here (and its copy cancelled if it has not started)."""
         ahead: deque[Future] = deque()
         for k, rec in enumerate(frames):
-            while self.pool is not None and len(ahead) <= OBSERVE_AHEAD and k + len(ahead) < len(frames):
-                ahead.append(self.pool.submit(_observe, frames[k + len(ahead)], self.max_points))
+            while self.observer is not None and len(ahead) <= OBSERVE_AHEAD and k + len(ahead) < len(frames):
+                ahead.append(self.observer.submit(_observe, frames[k + len(ahead)], self.max_points))
             fut = ahead.popleft() if ahead else None
             if fut is not None and fut.done() and not fut.cancelled() and fut.exception() is None:
                 yield fut.result()
@@ -158,5 +166,6 @@ class Offload:
     def close(self, failed: bool) -> None:
         """Stop the worker. After a failure wait for it; after success do not: every row is out, and its exit
         (interpreter clean-up, ~0.3 s) overlaps whatever the caller does next (an interpreter joins it at exit)."""
-        if self.pool is not None:
-            self.pool.shutdown(wait=failed, cancel_futures=True)
+        for pool in (self.observer, self.pool):
+            if pool is not None:
+                pool.shutdown(wait=failed, cancel_futures=True)

@@ -117,8 +117,8 @@ def test_observations_fall_back_inline_when_the_worker_cannot_observe(run: Path,
     recording = read_recording(run)
     offload = Offload(1, tmp_path / "missing", 200)
     try:
-        offload.pool.submit(os.getpid).result()  # the worker is up (and has no recording)
-        failed = offload.pool.submit(_observe, recording.frames[0], 200)
+        offload.observer.submit(os.getpid).result()  # the worker is up (and has no recording)
+        failed = offload.observer.submit(_observe, recording.frames[0], 200)
         assert isinstance(failed.exception(), RuntimeError)
         got = list(offload.observations(recording, recording.frames))
     finally:

@@ -8,8 +8,8 @@ frames ahead, rows behind. Whatever the worker has not finished when it is neede
 or when it falls behind), or could not do, is computed inline instead, so the worker only ever
 saves time: results are the same either way, and an error is raised from the tracking process.
 
-This module imports neither the trackers nor scikit-learn (the first verdict does), so a worker
-is ready to observe ~0.5 s after it is spawned.
+This module imports neither the trackers nor scikit-learn (the first verdict does), so the
+observer is ready ~0.5 s after it is spawned.
 """
 
 from __future__ import annotations
@@ -19,14 +19,13 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
-from concurrent.futures import Future
-from pathlib import Path
+from collections.abc import Callable, Iterator
+from concurrent.futures import BrokenExecutor, Executor, Future
+from typing import Any
 
 import numpy as np
 
 from pinpoint_fg.estimate import Estimate
-from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import FrameRecord, Recording
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.observe import observe_frame
@@ -56,21 +55,18 @@ def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bo
     return dataclasses.replace(est, bimodal=bimodal, extra=extra, modes=modes)
 
 
-_RECORDING: Recording | None = None  # the worker process's copy of the recording (read by _worker_init)
+_RECORDING: Recording | None = None  # the observer process's copy of the recording (set by _keep)
 
 
-def _worker_init(parent_pid: int, run: str | None) -> None:
+def _worker_init(parent_pid: int) -> None:
     """Worker initializer: exit as soon as the tracking process is gone (e.g. SIGKILL), so no orphan keeps running
-    or keeps the caller's pipes open; use one BLAS / OpenMP thread; read the recording ``run`` (if not None).
+    or keeps the caller's pipes open; use one BLAS / OpenMP thread.
 
     One thread: the worker shares the cores with the tracker; with its default pools (one thread per
     core) both processes' spinning BLAS threads fought for 2 cores, the tracker's steps took up to 3x
     longer and the worker fell behind (measured: 13.7 s of steps instead of 3.7 s, then 6.8 s waiting
-    for verdicts, on a 100-frame run). The recording is read here, not sent, so the worker starts
-    before the tracking process has read it; a failure leaves ``_RECORDING`` None (the tracking
-    process observes inline and reports the error itself).
+    for verdicts, on a 100-frame run).
     """
-    global _RECORDING
 
     def watch() -> None:
         while os.getppid() == parent_pid:
@@ -81,73 +77,88 @@ def _worker_init(parent_pid: int, run: str | None) -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1)
-    try:
-        _RECORDING = None if run is None else read_recording(run)
-    except Exception:  # noqa: BLE001 - the tracking process reads it too and reports the error
-        _RECORDING = None
+
+
+def _keep(recording: Recording) -> None:
+    """Observer task: keep ``recording`` for the :func:`_observe` tasks that follow (one process, in order)."""
+    global _RECORDING
+    _RECORDING = recording
 
 
 def _observe(rec: FrameRecord, max_points: int) -> Observation:
-    """Worker task: :func:`observe_frame` of ``rec`` on the worker's copy of the recording."""
+    """Observer task: :func:`observe_frame` of ``rec`` on the observer's copy of the recording."""
     if _RECORDING is None:
-        raise RuntimeError("the worker has no recording")
+        raise RuntimeError("the observer has no recording")
     return observe_frame(_RECORDING, rec, max_points=max_points)
 
 
+def _submit(pool: Executor | None, fn: Callable, *args: Any) -> Future | None:
+    """``pool.submit(fn, *args)``; None without a pool or when it is broken (a worker died) or shut down."""
+    if pool is None:
+        return None
+    try:
+        return pool.submit(fn, *args)
+    except (BrokenExecutor, RuntimeError):
+        return None
+
+
+def _done(fut: Future | None) -> bool:
+    """Whether ``fut`` holds a result (not pending, cancelled or failed)."""
+    return fut is not None and fut.done() and not fut.cancelled() and fut.exception() is None
+
+
 class Offload:
-    """Observations and result rows of a run, inline (``workers = 0``) or in spawned processes: ``workers`` for
-    the rows and, with any, one more for the observations.
+    """Observations and result rows of a run, inline (``workers = 0``) or in spawned processes: one observer and
+    ``workers`` for the rows.
 
     Computed inline, the GMM fits (20-30 ms a frame) and mask frames (~10 ms) made ``track`` take
     2x the step latencies it reported. Observations get their own process because they are on the
     tracker's path and rows are not: queued behind GMM fits on a busy machine, most of them were
-    not ready in time and were made inline. The workers start at construction (spawned: they
-    inherit no GTSAM state or BLAS locks; a calling script needs the usual
-    ``if __name__ == "__main__":`` guard). Rows come out in submission order whoever made them.
+    not ready in time and were made inline. The observer is started at construction, so it imports
+    while the tracking process reads the recording (it is then sent the recording, not read twice);
+    the row workers start with the first row. Spawned: they inherit no GTSAM state or BLAS locks (a
+    calling script needs the usual ``if __name__ == "__main__":`` guard). Rows come out in
+    submission order whoever made them.
     """
 
-    def __init__(self, workers: int, run: str | Path, max_points: int) -> None:
+    def __init__(self, workers: int, max_points: int) -> None:
         self.max_points = max_points
         self.pool = self.observer = None
         if workers > 0:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
-            def start(n: int, run: str | None) -> ProcessPoolExecutor:
-                pool = ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"),
-                                           initializer=_worker_init, initargs=(os.getpid(), run))
-                pool.submit(os.getpid)  # workers start on the first submit: start them now
-                return pool
-
-            self.observer = start(1, str(run))
-            self.pool = start(workers, None)
+            ctx = mp.get_context("spawn")
+            self.observer = ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),))
+            self.observer.submit(os.getpid)  # processes start on the first submit: start it now
+            self.pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                            initargs=(os.getpid(),))
         self.pending: list[Estimate | tuple[Estimate, Future]] = []
 
     def observations(self, recording: Recording, frames: list[FrameRecord]) -> Iterator[Observation]:
-        """The observations of ``frames`` of ``recording``, in order: the worker's where it has finished them,
+        """The observations of ``frames`` of ``recording``, in order: the observer's where it has finished them,
         else made here (and its copy cancelled if it has not started)."""
-        ahead: deque[Future] = deque()
+        _submit(self.observer, _keep, recording)
+        ahead: deque[Future | None] = deque()
         for k, rec in enumerate(frames):
             while self.observer is not None and len(ahead) <= OBSERVE_AHEAD and k + len(ahead) < len(frames):
-                ahead.append(self.observer.submit(_observe, frames[k + len(ahead)], self.max_points))
+                ahead.append(_submit(self.observer, _observe, frames[k + len(ahead)], self.max_points))
             fut = ahead.popleft() if ahead else None
-            if fut is not None and fut.done() and not fut.cancelled() and fut.exception() is None:
+            if _done(fut):
                 yield fut.result()
-            else:  # inline; a failure the worker met is raised here, from this process
+            else:  # inline; a failure the observer met is raised here, from this process
                 if fut is not None:
                     fut.cancel()
                 yield observe_frame(recording, rec, max_points=self.max_points)
 
     def submit(self, est: Estimate) -> None:
         """Queue ``est`` for its row (made inline without a worker or below 6 particles: no GMM to fit)."""
-        if self.pool is None or est.particles.shape[0] < 6:
-            self.pending.append(to_frame_estimate(est))
-        else:
-            self.pending.append((est, self.pool.submit(to_frame_estimate, est)))
+        fut = None if est.particles.shape[0] < 6 else _submit(self.pool, to_frame_estimate, est)
+        self.pending.append(to_frame_estimate(est) if fut is None else (est, fut))
 
     def ready(self, wait: bool = False) -> list[Estimate]:
-        """Rows that are in, in submission order. With ``wait`` all of them: those the worker has not started
-        are made here, alongside the one it is working on; one it failed on is made again here."""
+        """Rows that are in, in submission order. With ``wait`` all of them: those the workers have not started
+        are made here, alongside the ones they are working on; one a worker failed on is made again here."""
         if wait:
             self.pending = [to_frame_estimate(row[0]) if isinstance(row, tuple) and row[1].cancel() else row
                             for row in self.pending]
@@ -158,14 +169,18 @@ class Offload:
                 est, fut = row
                 if not (wait or fut.done()):
                     break
-                row = fut.result() if fut.exception() is None else to_frame_estimate(est)
+                try:
+                    row = fut.result()  # waits, with ``wait``
+                except Exception:  # noqa: BLE001 - a worker failed or died: made here (its error raised from here)
+                    row = to_frame_estimate(est)
             out.append(row)
             self.pending.pop(0)
         return out
 
     def close(self, failed: bool) -> None:
-        """Stop the worker. After a failure wait for it; after success do not: every row is out, and its exit
-        (interpreter clean-up, ~0.3 s) overlaps whatever the caller does next (an interpreter joins it at exit)."""
+        """Stop the workers. After a failure wait for them; after success do not: every row is out, and their
+        exit (interpreter clean-up, ~0.3 s) overlaps whatever the caller does next (an interpreter joins them
+        at exit)."""
         for pool in (self.observer, self.pool):
             if pool is not None:
                 pool.shutdown(wait=failed, cancel_futures=True)

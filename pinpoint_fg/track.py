@@ -134,7 +134,7 @@ def track_recording(
     differently (SVN's poses moved by <= 1.2e-15 m over a 150-frame run; PF, MAP, MHT unchanged).
     """
     out = prepare_output_dir(out, overwrite, "result")
-    offload = Offload(verdict_workers, run, max_points)  # first: the worker starts up while we read
+    offload = Offload(verdict_workers, max_points)  # first: the observer starts up while we read
     failed = True
     try:
         out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
@@ -149,7 +149,7 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
            noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
            max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
            offload: Offload) -> Path:
-    """:func:`track_recording` once ``out`` is prepared and ``offload``'s worker started."""
+    """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started."""
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
     if robust is not None:

@@ -11,7 +11,7 @@ import csv
 import io
 import multiprocessing as mp
 import os
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_info
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.observe import observe_frame
-from pinpoint_fg.offload import Offload, _observe, _worker_init, to_frame_estimate
+from pinpoint_fg.offload import Offload, _keep, _observe, _worker_init, to_frame_estimate
 from pinpoint_fg.sim.scenarios import simulate
 from pinpoint_fg.track import make_tracker, track_recording, tracker_config
 
@@ -55,8 +55,9 @@ def test_worker_functions_equal_inline(run: Path) -> None:
     recording = read_recording(run)
     frames = recording.frames
     pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_worker_init,
-                               initargs=(os.getpid(), str(run)))
+                               initargs=(os.getpid(),))
     try:
+        pool.submit(_keep, recording)
         observed = [pool.submit(_observe, rec, 200) for rec in frames]
         tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
         ests = []
@@ -85,7 +86,7 @@ def test_worker_functions_equal_inline(run: Path) -> None:
 def test_offload_writes_rows_in_frame_order_whoever_computes_them(run: Path) -> None:
     """Rows come back in submission order, whether the worker made them or (not started yet) this process."""
     recording = read_recording(run)
-    offload = Offload(1, run, 200)
+    offload = Offload(1, 200)
     try:
         tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
         obs = list(offload.observations(recording, recording.frames))
@@ -111,16 +112,21 @@ def test_track_leaves_the_callers_thread_pools_alone(run: Path, tmp_path: Path) 
     assert [(p["filepath"], p["num_threads"]) for p in threadpool_info()][: len(before)] == before
 
 
-def test_observations_fall_back_inline_when_the_worker_cannot_observe(run: Path, tmp_path: Path) -> None:
-    """A worker without the recording (here: pointed at a missing run) only fails its tasks; every observation
-    is then made in this process, equal to ``observe_frame``'s."""
+def test_everything_falls_back_inline_when_the_workers_die(run: Path) -> None:
+    """Dead workers (broken pools) only cost time: every observation and row is then made in this process, equal to
+    the inline ones, and in order."""
     recording = read_recording(run)
-    offload = Offload(1, tmp_path / "missing", 200)
+    offload = Offload(1, 200)
     try:
-        offload.observer.submit(os.getpid).result()  # the worker is up (and has no recording)
-        failed = offload.observer.submit(_observe, recording.frames[0], 200)
-        assert isinstance(failed.exception(), RuntimeError)
+        for pool in (offload.observer, offload.pool):
+            dead = pool.submit(os._exit, 3)  # the worker process dies: the pool is broken
+            assert isinstance(dead.exception(), BrokenExecutor)
         got = list(offload.observations(recording, recording.frames))
+        tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
+        ests = [tracker.step(o) for o in got]
+        for e in ests:
+            offload.submit(e)
+        rows = offload.ready(wait=True)
     finally:
         offload.close(failed=True)
     for rec, obs in zip(recording.frames, got, strict=True):
@@ -128,3 +134,5 @@ def test_observations_fall_back_inline_when_the_worker_cannot_observe(run: Path,
         assert obs.frame == here.frame
         x, y = obs.backbone_px, here.backbone_px
         assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))
+    assert [r.frame for r in rows] == [e.frame for e in ests]
+    assert [r.extra for r in rows] == [to_frame_estimate(e).extra for e in ests]

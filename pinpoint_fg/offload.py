@@ -79,6 +79,14 @@ def _worker_init(parent_pid: int) -> None:
     threadpool_limits(limits=1)
 
 
+def _warm_up() -> None:
+    """Row-worker task: one verdict on a fixed 12-particle cloud, so scikit-learn's mixture and k-means++ are loaded
+    (~1 s) before the first row arrives rather than after it (the worker then starts that far behind)."""
+    cloud = np.tile(np.eye(4), (12, 1, 1))
+    cloud[:, :3, 3] = 1e-3 * np.random.default_rng(0).normal(size=(12, 3))
+    bimodality_verdict(cloud, np.eye(4), None)
+
+
 def _keep(recording: Recording) -> None:
     """Observer task: keep ``recording`` for the :func:`_observe` tasks that follow (one process, in order)."""
     global _RECORDING
@@ -114,11 +122,13 @@ class Offload:
     Computed inline, the GMM fits (20-30 ms a frame) and mask frames (~10 ms) made ``track`` take
     2x the step latencies it reported. Observations get their own process because they are on the
     tracker's path and rows are not: queued behind GMM fits on a busy machine, most of them were
-    not ready in time and were made inline. The observer is started at construction, so it imports
-    while the tracking process reads the recording (it is then sent the recording, not read twice);
-    the row workers start with the first row. Spawned: they inherit no GTSAM state or BLAS locks (a
-    calling script needs the usual ``if __name__ == "__main__":`` guard). Rows come out in
-    submission order whoever made them.
+    not ready in time and were made inline. The workers are started at construction, so they import
+    while the tracking process reads the recording (the observer is then sent it, not read twice;
+    the row workers load scikit-learn: started with the first row instead, or with the first
+    observation, a row worker began up to ~25 frames behind on a busy machine and the last rows were
+    waited for, 0.4-1.7 s). Spawned: they inherit no
+    GTSAM state or BLAS locks (a calling script needs the usual ``if __name__ == "__main__":``
+    guard). Rows come out in submission order whoever made them.
     """
 
     def __init__(self, workers: int, max_points: int) -> None:
@@ -133,6 +143,8 @@ class Offload:
             self.observer.submit(os.getpid)  # processes start on the first submit: start it now
             self.pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
                                             initargs=(os.getpid(),))
+            for _ in range(workers):
+                self.pool.submit(_warm_up)
         self.pending: list[Estimate | tuple[Estimate, Future]] = []
 
     def observations(self, recording: Recording, frames: list[FrameRecord]) -> Iterator[Observation]:

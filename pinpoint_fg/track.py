@@ -5,33 +5,27 @@ an :class:`~pinpoint_fg.observation.Observation` (undistorted keypoints, backbon
 mask, kinematics), steps the tracker, judges bimodality of the particle set, and appends the
 frame to the result (flushed, so a run stopped half-way leaves every finished frame readable).
 ``latency_ms`` is the tracker's own step time; reading masks and the bimodality verdict are not
-part of it.
+part of it. With a worker process (``pinpoint-fg track``) those run beside the tracker, so the
+wall time stays close to the sum of the step latencies (README, *Latency*).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import os
 import sys
-import threading
-import time
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
-from pinpoint_fg.observe import observe_frame
-from pinpoint_fg.posterior.bimodality import assess_bimodality
-from pinpoint_fg.posterior.summary import modes_of_estimate, posterior_columns
+from pinpoint_fg.offload import Offload, bimodality_verdict, to_frame_estimate  # noqa: F401 - track's public names
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
@@ -96,81 +90,13 @@ def suggested_disable(run: str | Path) -> tuple[str, ...]:
     return tuple(value)
 
 
-def bimodality_verdict(particles: np.ndarray, T_map: np.ndarray, weights: np.ndarray | None) -> bool:
-    """The GMM bimodality verdict of a particle set (False below 6 particles: nothing to judge)."""
-    if particles.shape[0] < 6:
-        return False
-    return bool(assess_bimodality(particles, T_map, weights=weights).bimodal)
+def _thread_limit(threads: int | None) -> AbstractContextManager:
+    """Context limiting the process's BLAS / OpenMP pools to ``threads`` (None: no change)."""
+    if threads is None:
+        return nullcontext()
+    from threadpoolctl import threadpool_limits
 
-
-def to_frame_estimate(est: Estimate, T_gt: np.ndarray | None = None, bimodal: bool | None = None) -> Estimate:
-    """Result row of an estimate: the GMM bimodality verdict of its particle set (computed unless given), its
-    modes (modes.csv) and the extra columns ``bimodal_modes`` and ``weak_*`` (:mod:`pinpoint_fg.posterior.summary`)."""
-    if bimodal is None:
-        bimodal = bimodality_verdict(est.particles, est.cam_T_needle, est.weights)
-    modes = modes_of_estimate(est)
-    extra = {"reseeded": float(est.reseeded)}
-    extra.update({k: float(v) for k, v in est.extra.items()})
-    extra.update(posterior_columns(modes, est.cam_T_needle))
-    return dataclasses.replace(est, bimodal=bimodal, extra=extra, modes=modes)
-
-
-def _exit_with_parent(parent_pid: int) -> None:
-    """Worker initializer: end this worker as soon as the tracking process is gone (e.g. SIGKILL), so no
-    orphan keeps running or keeps the caller's stdout/stderr pipes open."""
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(0.2)
-        os._exit(0)
-
-    threading.Thread(target=watch, daemon=True).start()
-
-
-class _Verdicts:
-    """Per-frame summaries off the tracking thread: a worker process turns frame k's estimate into its result
-    row (:func:`to_frame_estimate`: GMM verdict, mode clustering, weak direction) while the tracker steps k+1.
-
-    The summaries (scikit-learn GMM fits, 20-30 ms; mode clustering, 5-20 ms) are not part of a
-    tracker's step; computed inline they made ``track`` take 1.6x the step latencies it reported.
-    With ``workers = 0`` they run inline. Rows are written in frame order either way, and are
-    identical (seeded fits, deterministic clustering).
-    """
-
-    def __init__(self, workers: int) -> None:
-        self.pool = None
-        if workers > 0:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
-
-            # spawn: the worker never inherits GTSAM state or BLAS locks; it imports scikit-learn while we track
-            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                            initializer=_exit_with_parent, initargs=(os.getpid(),))
-            self.pool.submit(bimodality_verdict, np.zeros((0, 4, 4)), np.eye(4), None)  # warm-up: imports
-        self.pending: list = []
-
-    def submit(self, est: Estimate) -> None:
-        if self.pool is None or est.particles.shape[0] < 6:
-            self.pending.append(to_frame_estimate(est))
-        else:
-            self.pending.append(self.pool.submit(to_frame_estimate, est))
-
-    def ready(self, wait: bool = False) -> list[Estimate]:
-        """Rows whose summaries are in, in frame order (all of them with ``wait``)."""
-        out = []
-        while self.pending:
-            row = self.pending[0]
-            if not isinstance(row, Estimate):
-                if not (wait or row.done()):
-                    break
-                row = row.result()
-            out.append(row)
-            self.pending.pop(0)
-        return out
-
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
+    return threadpool_limits(limits=int(threads))
 
 
 def track_recording(
@@ -188,19 +114,42 @@ def track_recording(
     overwrite: bool = False,
     verdict_workers: int = 0,
     robust: dict[str, RobustLoss] | None = None,
+    blas_threads: int | None = 1,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
     ``progress`` None shows a bar only on a terminal. ``max_frames`` stops after that many frames.
     ``out`` must be new or empty unless ``overwrite`` (:func:`pinpoint_fg.io.outdir.prepare_output_dir`);
     it is checked before the recording is read, so a refused ``out`` costs nothing.
-    ``verdict_workers`` processes summarise each frame (GMM verdict, modes) alongside the tracker
-    (0: inline, same rows; ``pinpoint-fg track`` uses 1; the worker is spawned, so a calling script needs the usual
-    ``if __name__ == "__main__":`` guard).
+    ``verdict_workers`` processes observe frames ahead of the tracker and summarise each frame (GMM verdict,
+    modes) behind it (:class:`~pinpoint_fg.offload.Offload`; 0: all inline, same files; ``pinpoint-fg track``
+    uses 1; the worker is spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults.
+    ``blas_threads`` limits the BLAS / OpenMP thread pools while tracking (threadpoolctl; None: leave them).
+    Default 1: a frame's matrices are small (6x6 blocks, N x M pixel products), so a second thread only
+    spins; on the shared 2-core machine one thread made SVN's steps 2.3x, PF's and MAP's 1.2x faster.
+    The files equal, bit for bit, those of a run with ``OPENBLAS_NUM_THREADS=1`` (what ``demo`` and
+    ``benchmark`` use with ``--jobs`` > 1) on any core count; a threaded BLAS rounds some sums
+    differently (SVN's poses moved by <= 1.2e-15 m over a 150-frame run; PF, MAP, MHT unchanged).
     """
     out = prepare_output_dir(out, overwrite, "result")
+    offload = Offload(verdict_workers, max_points)  # first: the observer starts up while we read
+    failed = True
+    try:
+        out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
+                     robust, blas_threads, offload)
+        failed = False
+    finally:
+        offload.close(failed)
+    return out
+
+
+def _track(run: str | Path, method: str, out: Path, particles: int | None, window: int,
+           noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
+           max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
+           offload: Offload) -> Path:
+    """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started."""
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
     if robust is not None:
@@ -213,19 +162,16 @@ def track_recording(
     settings = tracker.settings()
     settings["noise_file"] = None if noise_file is None else str(noise_file)
     show = sys.stderr.isatty() if progress is None else bool(progress)
-    with ResultWriter(out, method, settings, recording.info.name, str(Path(run).resolve()),
-                      weighted=(method in WEIGHTED_METHODS), smoothed=config.window > 1) as writer:
-        verdicts = _Verdicts(verdict_workers)
-        try:
-            for rec in tqdm(frames, desc=f"{method} {recording.info.name}", unit="frame", disable=not show):
-                obs = observe_frame(recording, rec, max_points=max_points)
-                verdicts.submit(tracker.step(obs))
-                for row in verdicts.ready():
-                    writer.write(row)
-            for row in verdicts.ready(wait=True):
+    with _thread_limit(blas_threads), ResultWriter(out, method, settings, recording.info.name,
+                                                   str(Path(run).resolve()), weighted=(method in WEIGHTED_METHODS),
+                                                   smoothed=config.window > 1) as writer:
+        for obs in tqdm(offload.observations(recording, frames), desc=f"{method} {recording.info.name}",
+                        unit="frame", total=len(frames), disable=not show):
+            offload.submit(tracker.step(obs))
+            for row in offload.ready():
                 writer.write(row)
-        finally:
-            verdicts.close()
+        for row in offload.ready(wait=True):
+            writer.write(row)
         final = getattr(tracker, "final_smoothed", None)
         if config.window > 1 and callable(final):
             for f, t, T in final():

@@ -172,3 +172,30 @@ def test_principal_plane() -> None:
     np.testing.assert_allclose(D @ D.T, np.eye(2), atol=1e-12)
     with pytest.raises(InputError):
         principal_plane(np.zeros((3, 5)))
+
+
+def test_fits_run_with_one_blas_thread_whatever_the_callers_pools(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both EM fits see one BLAS / OpenMP thread; the caller's pools are restored; the verdict is the same
+    bit for bit whether the caller limits its pools or not."""
+    from sklearn.mixture import GaussianMixture
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    seen: list[int] = []
+    fit = GaussianMixture.fit
+
+    def spy(self, X, y=None):  # scikit-learn's signature
+        seen.append(max(p["num_threads"] for p in threadpool_info()))
+        return fit(self, X, y)
+
+    monkeypatch.setattr(GaussianMixture, "fit", spy)
+    rng = np.random.default_rng(11)
+    P = np.concatenate([cloud(rng, 30, np.zeros(6), 0.5), cloud(rng, 30, FAR, 0.5)])
+    before = [(p["filepath"], p["num_threads"]) for p in threadpool_info()]
+    free = assess_bimodality(P, T_MAP)
+    assert seen == [1, 1]
+    assert [(p["filepath"], p["num_threads"]) for p in threadpool_info()] == before
+    with threadpool_limits(limits=1):
+        limited = assess_bimodality(P, T_MAP)
+    assert free.bimodal and limited.bimodal
+    assert (free.bic1, free.bic2, free.ashman_d) == (limited.bic1, limited.bic2, limited.ashman_d)
+    assert np.array_equal(free.means, limited.means) and np.array_equal(free.covariances, limited.covariances)

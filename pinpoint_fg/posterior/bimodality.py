@@ -25,16 +25,23 @@ turned into an equally weighted one by systematic resampling with a seeded gener
 larger than ``max_points`` (default 1000) are thinned the same way (uniform weights), which
 keeps a 3000-particle filter well under 100 ms. Sets with fewer than 6 distinct points, or
 (numerically) no spread, get a unimodal verdict without fitting.
+
+Speed: the fits run with one BLAS / OpenMP thread (:func:`_one_thread`). The problems are tiny
+(<= 1000 points in 6-D), so threads only add start-up; on a busy 2-core machine a threaded
+``solve_triangular`` of a 6x6 waited milliseconds for its second thread, and a fit took
+seconds instead of 20 ms. The verdict therefore does not depend on the caller's thread settings.
+scikit-learn is imported on the first fit, not with this module (about 1 s), so a process that
+leaves the verdicts to a worker (``pinpoint-fg track``) never loads it.
 """
 
 from __future__ import annotations
 
 import warnings
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.mixture import GaussianMixture
 
 from factors.lie import local
 from pinpoint_fg.errors import InputError
@@ -57,6 +64,20 @@ ASHMAN_D_MIN = 2.0
 """Ashman's D must exceed this for the two components to count as separate modes."""
 MINOR_WEIGHT_MIN = 0.10
 """The lighter component must carry at least this share of the mixture weight."""
+
+
+_CONTROLLER: Any = None
+
+
+def _one_thread() -> AbstractContextManager:
+    """Context limiting the loaded BLAS and OpenMP pools to one thread (threadpoolctl; one cached controller,
+    created after scikit-learn is imported, so it sees every pool the fits use)."""
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=1)
 
 
 def _scale() -> np.ndarray:
@@ -207,12 +228,15 @@ def assess_bimodality(
             gt_xi_scaled=gt_xi,
         )
 
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.mixture import GaussianMixture
+
     common = dict(covariance_type="full", reg_covar=REG_COVAR, random_state=seed, init_params="k-means++")
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _one_thread():
         warnings.simplefilter("ignore", ConvergenceWarning)
         gm1 = GaussianMixture(n_components=1, n_init=1, **common).fit(X)
         gm2 = GaussianMixture(n_components=2, n_init=N_INIT, **common).fit(X)
-    bic1, bic2 = float(gm1.bic(X)), float(gm2.bic(X))
+        bic1, bic2 = float(gm1.bic(X)), float(gm2.bic(X))
     means, covs, mix = gm2.means_, gm2.covariances_, gm2.weights_
     d = ashman_d(means, covs)
     minor = float(mix.min())

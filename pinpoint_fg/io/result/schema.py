@@ -23,9 +23,11 @@ Crash safety. Every CSV/TUM row is flushed as it is written. ``particles.npz`` c
 appended to (its arrays are stacked over frames), so it is rewritten whole, atomically
 (temporary file + ``os.replace``), and therefore always loads. Rewriting it every frame costs
 O(F N) per frame, O(F^2 N) per run (3000 particles x 300 frames would be ~10 GB of writes), so
-once the arrays exceed ``npz_large_bytes`` it is rewritten at most every ``npz_min_interval_s``
-seconds of wall time, and always on close. So that no finished frame is lost in between, every
-frame's particles are also appended (one fixed-size binary record, flushed) to
+once the arrays exceed ``npz_large_bytes`` (default 64 kB: 20 frames of 50 particles) it is
+rewritten at most every ``npz_min_interval_s`` seconds of wall time, and always on close. (With
+the earlier default of 8 MB, a 100-frame SVN run rewrote it on every frame: 1-2 ms per frame,
+mostly the ``os.replace``, more than half of the writer's time in ``track``.) So that no
+finished frame is lost in between, every frame's particles are also appended (one fixed-size binary record, flushed) to
 ``particles.journal``; :func:`read_result` reads the journal when it holds more frames than the
 npz, so a result abandoned without ``close()`` still yields every finished frame. The journal is
 deleted once the final npz is in place. Trade-off: after a crash an outside tool reading only

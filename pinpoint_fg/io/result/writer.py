@@ -129,7 +129,7 @@ class ResultWriter:
         weighted: bool = False,
         smoothed: bool = False,
         *,
-        npz_large_bytes: int = 8_000_000,
+        npz_large_bytes: int = 64_000,
         npz_min_interval_s: float = 2.0,
     ) -> None:
         self.out_dir = Path(out_dir)

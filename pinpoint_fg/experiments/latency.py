@@ -3,7 +3,8 @@
 Machines are noisy and shared, so absolute milliseconds do not transfer; ratios measured in the
 same run do. :func:`lockstep` observes every frame once (mask processing is not part of any
 tracker's step), then feeds each frame to every tracker in turn (one thread: load hits all
-alike) and records each step's own ``latency_ms``, its iterations, whether the frame had a mask
+alike; the BLAS / OpenMP pools are limited to one thread too, as ``pinpoint-fg track`` runs
+them) and records each step's own ``latency_ms``, its iterations, whether the frame had a mask
 (backbone pixels) and, where the run has ground truth, the MAP pose's errors.
 """
 
@@ -88,6 +89,8 @@ def lockstep(run: str | Path, specs: list[TrackerSpec], max_frames: int | None =
     observations = [observe_frame(recording, rec, max_points=max_points) for rec in frames]
     trackers = {s.label: make_tracker(s.method, tracker_config(recording, s.method, s.particles, s.window,
                                                                seed=seed)) for s in specs}
+    from threadpoolctl import threadpool_limits
+
     n = len(frames)
     out = LockstepResult(mask=np.array([o.backbone_px is not None for o in observations], dtype=bool))
     for s in specs:
@@ -96,14 +99,16 @@ def lockstep(run: str | Path, specs: list[TrackerSpec], max_frames: int | None =
         out.cpu_ms[s.label] = np.zeros(n)
         out.trans_err_m[s.label] = np.full(n, np.nan)
         out.rot_err_rad[s.label] = np.full(n, np.nan)
-    for k, (rec, obs) in enumerate(zip(frames, observations, strict=True)):
-        for s in specs:
-            c0 = time.thread_time()
-            est = trackers[s.label].step(obs)
-            out.cpu_ms[s.label][k] = 1e3 * (time.thread_time() - c0)
-            out.latency_ms[s.label][k] = est.latency_ms
-            out.iterations[s.label][k] = est.iterations
-            out.trans_err_m[s.label][k], out.rot_err_rad[s.label][k] = _errors(est.cam_T_needle, rec.cam_T_needle_gt)
+    with threadpool_limits(limits=1):
+        for k, (rec, obs) in enumerate(zip(frames, observations, strict=True)):
+            for s in specs:
+                c0 = time.thread_time()
+                est = trackers[s.label].step(obs)
+                out.cpu_ms[s.label][k] = 1e3 * (time.thread_time() - c0)
+                out.latency_ms[s.label][k] = est.latency_ms
+                out.iterations[s.label][k] = est.iterations
+                out.trans_err_m[s.label][k], out.rot_err_rad[s.label][k] = _errors(est.cam_T_needle,
+                                                                                   rec.cam_T_needle_gt)
     return out
 
 

@@ -176,8 +176,25 @@ def test_snapshots_are_tracked_frame_to_frame(tmp_path: Path, method: str, parti
     res = read_result(out)
     np.testing.assert_allclose(res.extra["process_scale"][1:], 15.0)  # 0.5 s = 15 reference frames
     assert not np.any(res.extra["kinematics_fault"])
-    err = pose_errors(res.cam_T_needle, simulate_frames("snapshots", 16, 1).cam_T_needle)
+    truth = simulate_frames("snapshots", 16, 1).cam_T_needle
+    err = pose_errors(res.cam_T_needle, truth)
     assert np.all(np.isfinite(err.trans_m))
-    # sensible, not an accuracy claim: within the needle radius (4.5 mm) and 30 deg on most frames
-    # (measured, seed 1: svn and map well inside 2 mm / 15 deg; pf ~2 mm / 20 deg)
-    assert np.median(err.trans_m) < 3e-3 and np.median(np.degrees(err.rot_rad)) < 30.0
+    assert np.median(err.trans_m) < 3e-3
+    if method == "svn":
+        # SVN reports its modes: with frames 0.5 s apart and no kinematics the circle and its twin (~70 deg
+        # away) are within ~2 nats on several frames (measured, seed 1, frame 4: 293.5 vs 295.8), so which
+        # one is the MAP is a coin toss that round-off decides; what must hold is that the truth stays
+        # among the reported modes (within the needle radius and 15 deg) on most frames
+        from pinpoint_fg.io.result import read_modes
+
+        modes = read_modes(out).by_frame()
+        kept = []
+        for k, T in enumerate(truth):
+            peaks = np.stack([m.cam_T_needle for m in modes[k]])
+            e = pose_errors(peaks, np.broadcast_to(T, peaks.shape))
+            kept.append(bool(np.any((e.trans_m < 4.5e-3) & (np.degrees(e.rot_rad) < 15.0))))
+        assert np.mean(kept) >= 0.8, kept
+    else:
+        # sensible, not an accuracy claim: within the needle radius (4.5 mm) and 30 deg on most frames
+        # (measured, seed 1: map well inside 2 mm / 15 deg; pf ~2 mm / 20 deg)
+        assert np.median(np.degrees(err.rot_rad)) < 30.0

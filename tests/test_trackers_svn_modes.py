@@ -164,23 +164,30 @@ def test_allotment_gives_every_admitted_mode_its_floor_from_outside_modes_first_
     assert np.any(np.all(w.newest[new] == base[3], axis=(1, 2)))  # the first copy is exact, the others jittered
 
 
-def test_settle_moves_each_compared_modes_best_hypothesis_to_its_peak_and_rescores_the_mode() -> None:
-    """Two modes (the true circle and its twin), each best hypothesis started 3 deg / 0.3 mm off its peak: after
-    settle both sit at their peaks (Gauss-Newton decrement below 1e-3 nats), every member carries its mode's
-    polished evidence: the Laplace evidence at its peak."""
+def _two_circle_window(rng: np.random.Generator) -> tuple[Window, np.random.Generator]:
+    """A one-frame window of 12 hypotheses: 6 within 3 deg / 0.3 mm of the true circle, 6 of its twin, each
+    half's prior centred on its own circle (the ambiguous scene, dense term only)."""
     from pinpoint_fg.proposals import twin_poses
-    from pinpoint_fg.trackers.svn_modes import settle
 
     T, _, arc = _ambiguous_scene()
     cfg = TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(grasp_perpendicular=False, tip=False, tail=False))
     lik = FrameLikelihood(Observation(0, 0.0, backbone_px=arc, cam_T_grasper=_grasper(T)), cfg.model)
     twin = twin_poses(T[None], CAM.K, NEEDLE.radius_m, NEEDLE.tail_angle_rad, NEEDLE.tip_angle_rad)[0]
-    rng = np.random.default_rng(2)
     off = np.r_[[np.deg2rad(3.0)] * 3, [0.3e-3] * 3]
     poses = np.concatenate([T @ se3_exp(rng.normal(size=(6, 6)) * off), twin @ se3_exp(rng.normal(size=(6, 6)) * off)])
     w = Window(1, np.diag(np.r_[[0.02 ** 2] * 3, [0.3e-3 ** 2] * 3]), forgetting=1.0)
     w.start(poses, lik, FIRST_PRIOR_SIGMA)
-    w.prior_mean[:6], w.prior_mean[6:] = T, twin  # each mode's prior centred on its own circle
+    w.prior_mean[:6], w.prior_mean[6:] = T, twin
+    return w, rng
+
+
+def test_settle_moves_each_compared_modes_best_hypothesis_to_its_peak_and_rescores_the_mode() -> None:
+    """Two modes (the true circle and its twin), each best hypothesis started 3 deg / 0.3 mm off its peak: after
+    settle both sit at their peaks (Gauss-Newton decrement below 1e-3 nats), every member carries its mode's
+    polished evidence: the Laplace evidence at its peak."""
+    from pinpoint_fg.trackers.svn_modes import settle
+
+    w, _ = _two_circle_window(np.random.default_rng(2))
     lin = w.linearize()
     found = basins(w.newest, lin, w.evidence)
     assert found.reps.shape == (2,)
@@ -202,19 +209,9 @@ def test_every_member_of_a_settled_mode_takes_its_peaks_books() -> None:
     """Evidence is kept per mode: after settle, members carry the polished best hypothesis's prior and evidence
     (each member's own marginalisations, made off the peak by repulsion, would otherwise drift apart by
     hundreds of nats over a run and let the luckiest member decide the mode's weight)."""
-    from pinpoint_fg.proposals import twin_poses
     from pinpoint_fg.trackers.svn_modes import settle, share_mode_books
 
-    T, _, arc = _ambiguous_scene()
-    cfg = TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(grasp_perpendicular=False, tip=False, tail=False))
-    lik = FrameLikelihood(Observation(0, 0.0, backbone_px=arc, cam_T_grasper=_grasper(T)), cfg.model)
-    twin = twin_poses(T[None], CAM.K, NEEDLE.radius_m, NEEDLE.tail_angle_rad, NEEDLE.tip_angle_rad)[0]
-    rng = np.random.default_rng(4)
-    off = np.r_[[np.deg2rad(3.0)] * 3, [0.3e-3] * 3]
-    poses = np.concatenate([T @ se3_exp(rng.normal(size=(6, 6)) * off), twin @ se3_exp(rng.normal(size=(6, 6)) * off)])
-    w = Window(1, np.diag(np.r_[[0.02 ** 2] * 3, [0.3e-3 ** 2] * 3]), forgetting=1.0)
-    w.start(poses, lik, FIRST_PRIOR_SIGMA)
-    w.prior_mean[:6], w.prior_mean[6:] = T, twin
+    w, rng = _two_circle_window(np.random.default_rng(4))
     w.evidence = rng.normal(size=12) * 50.0  # drifted books
     found = basins(w.newest, w.linearize(), w.evidence)
     found, polished, _ = settle(w, w.linearize(), found, iters=30)

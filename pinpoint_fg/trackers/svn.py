@@ -127,8 +127,7 @@ class SvnSettings:
     stop_quiet: int = 2
     """Early stop after this many consecutive iterations with small steps. One measured 14 % faster per frame
     (normal-01, drive-01) but moved drive-01's mean rotation error 3.18 -> 3.27 deg (+2.7 %) and flipped the
-    ambiguous runs' outcomes (symmetric-01 bimodal frames 100 % -> 19 %): a single small step is often a
-    safeguard-halved one, not convergence."""
+    ambiguous runs' outcomes (symmetric-01 bimodal frames 100 % -> 19 %), so two stay the default."""
     stop_logp: float = float("inf")
     """Early stop: also require the best log-posterior to change by less than this (inf: steps alone).
     The paper's 0.02 kept 80-90 % of mask frames at the iteration cap although the steps had fallen

@@ -115,7 +115,7 @@ def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Windo
 def share_books(window: Window, index: np.ndarray | list[int], source_index: np.ndarray | list[int]) -> None:
     """Hypotheses ``index`` take the window prior and evidence of ``source_index``, keeping their own poses.
 
-    The books of one mode (:func:`pinpoint_fg.trackers.svn_modes.share_mode_books`). The memo of the
+    The books of one mode (:func:`pinpoint_fg.trackers.svn_modes.book_sources`). The memo of the
     oldest frame's terms stays valid: only the prior's share of the changed rows is re-evaluated
     (equal to a fresh evaluation to round-off).
     """

@@ -205,35 +205,69 @@ def test_settle_moves_each_compared_modes_best_hypothesis_to_its_peak_and_rescor
     assert np.allclose(settled.log_evidence[polished], z_fresh, atol=2e-3)
 
 
-def test_every_member_of_a_settled_mode_takes_its_peaks_books() -> None:
-    """Evidence is kept per mode: after settle, members carry the polished best hypothesis's prior and evidence
-    (each member's own marginalisations, made off the peak by repulsion, would otherwise drift apart by
-    hundreds of nats over a run and let the luckiest member decide the mode's weight)."""
-    from pinpoint_fg.trackers.svn_modes import settle, share_mode_books
+def test_every_member_of_a_settled_mode_takes_its_peaks_books_after_the_next_marginalisation() -> None:
+    """Evidence is kept per mode: after the next frame's push, members carry the prior and evidence their
+    polished rep's own marginalisation gave — the prior marginalised at the peak, not at the member's pose."""
+    from pinpoint_fg.trackers.svn_modes import book_sources, settle
+    from pinpoint_fg.window_rows import share_books
 
     w, rng = _two_circle_window(np.random.default_rng(4))
     w.evidence = rng.normal(size=12) * 50.0  # drifted books
     found = basins(w.newest, w.linearize(), w.evidence)
     found, polished, _ = settle(w, w.linearize(), found, iters=30)
-    before = w.newest.copy()
     index = np.arange(12)
     index[3] = 0  # a pruned hypothesis now copies hypothesis 0
-    changed = share_mode_books(w, found, polished, index)
+    members, source = book_sources(found, polished, index)
+    assert members.size == 10 and not np.isin(polished, members).any()
+    assert np.all(found.labels[index[members]] == found.labels[source])
+    alone = w.subset(polished)  # each rep's window on its own, pushed the same way
+    D = se3_exp(np.r_[0.01, -0.02, 0.01, 1e-4, 0.0, -1e-4])
+    frame = w.frames[-1]
+    w.push(frame, D, True)
+    alone.push(frame, D, True)
+    before = w.newest.copy()
+    share_books(w, members, source)
     assert np.array_equal(w.newest, before)  # poses are not touched
-    for r in polished:
-        members = np.flatnonzero(found.labels[index] == found.labels[r])
-        assert np.all(w.evidence[members] == w.evidence[r])
-        assert np.all(w.prior_mean[members] == w.prior_mean[r])
-    assert changed == 10
-    # a rep that was pruned gives no books: nothing changes for its mode
-    w2_ev = w.evidence.copy()
-    rep0 = int(polished[0])
+    for k, r in enumerate(polished):
+        rows = np.r_[r, members[source == r]]
+        assert np.allclose(w.prior_mean[rows], alone.prior_mean[k], rtol=0, atol=1e-12)
+        assert np.allclose(w.prior_W[rows], alone.prior_W[k], rtol=0, atol=1e-9)
+        assert np.allclose(w.evidence[rows], alone.evidence[k], rtol=0, atol=1e-9)
+    # a rep that was pruned gives no books
     index2 = np.arange(12)
-    index2[rep0] = int(polished[1])
-    w.evidence = rng.normal(size=12)
-    w2_ev = w.evidence.copy()
-    share_mode_books(w, found, polished[:1], index2)
-    assert np.array_equal(w.evidence, w2_ev)
+    index2[int(polished[0])] = int(polished[1])
+    members2, source2 = book_sources(found, polished[:1], index2)
+    assert members2.size == 0 and source2.size == 0
+
+
+def test_settle_also_starts_from_the_predicted_previous_map_and_keeps_the_better_start_per_row() -> None:
+    """``predicted=(row, pose)``: the row is polished from its current pose and from ``pose``; each row appears once
+    in the result and holds the start with the higher evidence. From the far side of its basin (8 deg off) the
+    prediction converges to the same peak; a prediction placed on the peak itself is kept exactly there."""
+    from pinpoint_fg.trackers.svn_modes import settle
+
+    w, _ = _two_circle_window(np.random.default_rng(2))
+    lin = w.linearize()
+    found = basins(w.newest, lin, w.evidence)
+    ref = w.subset(np.arange(12))
+    plain, polished0, lin0 = settle(ref, ref.linearize(), found, iters=30)
+    r = int(found.reps[0])
+    peak = ref.newest[r].copy()
+    z_plain = laplace_terms(lin0, ref.evidence[polished0])[2]
+    for offset_deg, exact in ((8.0, False), (0.0, True)):
+        w2 = w.subset(np.arange(12))
+        start = peak @ se3_exp(np.r_[np.deg2rad(offset_deg), 0, 0, 0, 0, 0])
+        settled, polished, lin_r = settle(w2, w2.linearize(), found, iters=30, predicted=(r, start))
+        assert sorted(polished.tolist()) == sorted(polished0.tolist())  # the row appears once
+        z = laplace_terms(lin_r, w2.evidence[polished])[2]
+        k = int(np.flatnonzero(polished == r)[0])
+        assert z[k] >= z_plain[int(np.flatnonzero(polished0 == r)[0])] - 1e-6
+        assert settled.reps[0] == r
+        if exact:
+            assert np.allclose(w2.newest[r], peak, atol=1e-9)
+        else:
+            assert float(local(peak[None], w2.newest[r][None])[0, :3] @ local(peak[None], w2.newest[r][None])[0, :3]) \
+                < np.deg2rad(0.5) ** 2
 
 
 def test_a_proposal_whose_predicted_peak_is_a_held_mode_is_not_polished(monkeypatch) -> None:

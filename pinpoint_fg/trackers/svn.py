@@ -53,11 +53,13 @@ Per frame (DESIGN.md §Inference):
    log-evidence (particle counts are not weights: transport cannot move mass between basins),
    its peak its polished best hypothesis, its covariance its members' tangent covariance (or
    the inverse information when it has fewer than 7 members). Then q95 spread and covariance
-   around the MAP; with L > 1 the smoothed pose of frame k - L + 1. Last, every member of a settled
-   mode takes its polished peak's window prior and evidence for the next frame
-   (:func:`~pinpoint_fg.trackers.svn_modes.share_mode_books`: the books are kept per mode, as MHT keeps
-   them per branch; per particle they drift apart by hundreds of nats over a run because each
-   member's marginalisations are made where repulsion put it). When every hypothesis is
+   around the MAP; with L > 1 the smoothed pose of frame k - L + 1. Last, the books are kept per mode,
+   as MHT keeps them per branch (:func:`~pinpoint_fg.trackers.svn_modes.book_sources`): right after
+   the next frame's marginalisation every member of a settled mode takes its polished peak's window
+   prior and evidence (per particle they drift apart by hundreds of nats over a run because each
+   member's marginalisations are made where repulsion put it). The previous MAP hypothesis at its
+   motion prediction, where single-mode MAP starts its search, is one more start of its mode's
+   polish (``ModeSettings.map_from_prediction``). When every hypothesis is
    implausible (the best one's cost far above what the frame's residual count allows) the
    particles are re-seeded from this frame.
 
@@ -86,11 +88,12 @@ from pinpoint_fg.trackers.svn_modes import (
     ModeSettings,
     allot,
     basins,
+    book_sources,
     propose,
     settle,
-    share_mode_books,
 )
 from pinpoint_fg.window import DEFAULT_RELIN_THRESHOLD, Window
+from pinpoint_fg.window_rows import share_books
 
 #: Weak prior on the very first pose of each hypothesis: [omega x3 (rad), v x3 (m)].
 FIRST_PRIOR_SIGMA = np.array([np.deg2rad(30.0)] * 3 + [10e-3] * 3)
@@ -190,6 +193,9 @@ class SvnTracker(Tracker):
         self.window = Window(config.window, noise.process_cov, self.svn.forgetting, self.svn.relin_threshold)
         self._times: list[tuple[int, float]] = []
         self._lin = None  # the transport's final linearisation (reused by the MAP polish)
+        self._books: tuple[np.ndarray, np.ndarray] | None = None  # (members, their rep) to share after the push
+        self._prev_map: int | None = None  # the last MAP hypothesis, if it survived the pruning
+        self._predicted: tuple | None = None  # (row, predicted pose, prior mean, evidence) of _prev_map
 
     @property
     def particles(self) -> np.ndarray:
@@ -322,6 +328,13 @@ class SvnTracker(Tracker):
             self._seed(lik)
         else:
             self.window.push(lik, motion.delta, self.config.switches.motion, process_scale=motion.scale)
+            if self._books is not None:
+                share_books(self.window, *self._books)
+            self._books = None
+            prev = self._prev_map
+            if self.svn.modes.map_from_prediction and prev is not None:
+                self._predicted = (prev, self.window.newest[prev].copy(), self.window.prior_mean[prev].copy(),
+                                   float(self.window.evidence[prev]))
             self._jitter_copies()
             proposed, moved = self._propose(lik)
         first = self.frames_seen < self.svn.first_frames
@@ -344,10 +357,16 @@ class SvnTracker(Tracker):
             self._lin = self.window.linearize()
         found = basins(self.window.newest, self._lin, self.window.evidence, self.svn.modes)
         polished = np.zeros(0, dtype=int)
+        predicted, self._predicted = self._predicted, None
+        if predicted is not None and (reseeded or not (
+                np.array_equal(self.window.prior_mean[predicted[0]], predicted[2])
+                and self.window.evidence[predicted[0]] == predicted[3])):
+            predicted = None  # the hypothesis was replaced since its prediction
         if self.svn.map_polish_iters > 0:  # every compared mode's best hypothesis moved to its peak
             found, polished, lin_r = settle(self.window, self._lin, found, self.svn.map_polish_iters,
                                             self.svn.polish_decrement, 2 * self.svn.modes.max_modes,
-                                            self.svn.modes.map_starts)
+                                            self.svn.modes.map_starts,
+                                            None if predicted is None else predicted[:2])
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])
@@ -355,8 +374,9 @@ class SvnTracker(Tracker):
             i = int(np.argmin(value))
         index = self._prune(np.where(found.converged, found.log_evidence, np.inf), value)
         modes = self._modes(found, index, i)
-        if self.svn.modes.shared_books:
-            share_mode_books(self.window, found, found.reps[np.isin(found.reps, polished)], index)
+        self._prev_map = i if index[i] == i else None
+        if self.svn.modes.shared_books:  # applied after the next marginalisation (module docstring, step 7)
+            self._books = book_sources(found, found.reps[np.isin(found.reps, polished)], index)
         latency_ms = 1e3 * (time.perf_counter() - t0)
         self.frames_seen += 1
         self._times.append((observation.frame, observation.t_s))

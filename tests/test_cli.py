@@ -110,10 +110,11 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert (tmp_path / "demo" / "report" / "summary.csv").exists()
     assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2"]) == 0
     text = (tmp_path / "bench" / "benchmark.txt").read_text()
-    table, ratios = text.split("\n\n")
+    table, ratios, weights = text.split("\n\n")
     assert "median vs pf" in table and "cover t/r" in table and " mht " in table
     assert table.count("\n") + 1 == 1 + len(BENCH_SCENARIOS) * 5
     assert "trans/map" in ratios and ratios.strip().count("\n") == 1 + len(BENCH_SCENARIOS)
+    assert "minor w / truth" in weights and weights.strip().count("\n") == 2 + len(BENCH_SCENARIOS)
     assert "symmetric" in text and "snapshots" in text
     # the symmetric run asks to be tracked without the grasp factors; the benchmark honours it
     for method, expected in (("svn", ["grasp-position", "grasp-perpendicular"]), ("map", ["grasp-position",

@@ -13,7 +13,7 @@ from factors.lie import se3_exp
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.estimate import Estimate
-from pinpoint_fg.eval.modes import reference_rates
+from pinpoint_fg.eval.modes import ResultModes, mode_weight_calibration, reference_rates
 from pinpoint_fg.eval.report import evaluate_results
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
@@ -87,6 +87,25 @@ def test_reference_rates_on_a_constructed_example() -> None:
     assert r["bimodal_ref_single_rate"] == 0.0 and r["bimodal_modes_ref_single_rate"] == 0.0
 
 
+def test_mode_weights_against_the_truth_on_a_constructed_example() -> None:
+    """Minor-mode weight vs how often the truth sits in a minor mode, over the frames some mode keeps the truth."""
+    T = np.eye(4)
+    T[2, 3] = 0.1
+    away = T @ se3_exp(np.array([0.7, 0, 0, 0, 0, 0]))  # 40 deg: not the truth
+    peaks = [np.stack([T, away]), np.stack([away, T]), np.stack([T]), np.stack([away]), np.zeros((0, 4, 4))]
+    weights = np.array([[0.8, 0.2], [0.7, 0.3], [1.0, 0.0], [1.0, 0.0], [np.nan, np.nan]])
+    modes = ResultModes(weights, peaks, "modes.csv")
+    gt = np.broadcast_to(T, (5, 4, 4))
+    r = mode_weight_calibration(modes, gt, np.ones(5, bool))
+    # frames 0-2 keep the truth (frame 3's only mode is 40 deg off, frame 4 has none): minor weights 0.2, 0.3, 0;
+    # the truth is in the minor mode on frame 1 (the dominant there is the 0.7 mode 40 deg away)
+    assert r["truth_mode_frames"] == 3
+    assert r["minor_weight_mean"] == pytest.approx(0.5 / 3)
+    assert r["truth_minor_share"] == pytest.approx(1 / 3)
+    none = mode_weight_calibration(modes, gt, np.zeros(5, bool))
+    assert none["truth_mode_frames"] == 0 and np.isnan(none["minor_weight_mean"])
+
+
 def test_mht_among_the_results_is_the_reference(setup) -> None:  # noqa: ANN001
     rec, mht, svn, base = setup
     rep = evaluate_results([mht, svn], out=base / "eval", ambiguity=False)
@@ -101,6 +120,10 @@ def test_mht_among_the_results_is_the_reference(setup) -> None:  # noqa: ANN001
     assert row["truth_kept_modes_share"] == pytest.approx(10 / 12)  # frames 6, 7: 5 mm off
     assert row["truth_kept_particles_share"] == pytest.approx(10 / 12)
     assert ref_row["truth_kept_modes_share"] == 1.0
+    # the truth is always in the dominant mode (1 mm off; frames 6, 7 keep it in no mode): minor weight 0.4 on
+    # frames 0-4 and 11, 0 on the other four of the ten that keep it
+    assert row["truth_mode_frames"] == 10 and row["truth_minor_share"] == 0.0
+    assert row["minor_weight_mean"] == pytest.approx(0.4 * 6 / 10)
     names = {p.name for p in (base / "eval").glob("modes_time_*.png")}
     assert names == {f"modes_time_{rec.info.name}_mht.png", f"modes_time_{rec.info.name}_svn.png"}
     for p in (base / "eval").glob("modes_time_*.png"):

@@ -11,6 +11,12 @@ Per result (frame axis first):
 * **truth kept**: the share of frames with ground truth where some mode peak
   (``truth_kept_modes_share``), respectively some particle (``truth_kept_particles_share``), is
   within ``TRUTH_KEPT_TRANS_M`` = 2 mm AND ``TRUTH_KEPT_ROT_RAD`` = 10 deg of the truth.
+* **mode weights against the truth** (:func:`mode_weight_calibration`): on the frames where some
+  mode keeps the truth, the mean weight of the minor modes (``minor_weight_mean``: the probability the
+  result gives to the truth *not* being in its dominant mode) beside the share of those frames where
+  the truth is in a minor mode and not in the dominant one (``truth_minor_share``). Calibrated
+  weights make the two equal; a "bimodal" verdict that the reference calls false can then be
+  checked against the truth rather than against the reference.
 * **reference rates**: a reference result (a multi-hypothesis tracker, MHT, on the same recording)
   calls a frame *multimodal* when its second mode weighs at least 0.1, else *single-mode*. On the
   frames both results have (the reference's frames with modes), the share of frames each verdict
@@ -108,6 +114,28 @@ def truth_kept(res: Result, modes: ResultModes, T_gt: np.ndarray, has_gt: np.nda
     near = near_truth(P.cam_T_needle[g], T_gt[g][:, None])  # (G, N)
     out["truth_kept_particles_share"] = float(np.mean(np.any(near, axis=1)))
     return out
+
+
+def mode_weight_calibration(modes: ResultModes, T_gt: np.ndarray, has_gt: np.ndarray) -> dict[str, float | int]:
+    """``minor_weight_mean``, ``truth_minor_share`` and their frame count ``truth_mode_frames`` (module docstring).
+
+    ``T_gt`` (F, 4, 4) and ``has_gt`` (F,) per frame of the result; the dominant mode is the heaviest
+    (the first on ties). NaN when no mode keeps the truth on any frame.
+    """
+    minor_w, in_minor = [], []
+    for i in np.nonzero(has_gt & modes.has_modes)[0]:
+        peaks = modes.peaks[i]
+        w = modes.weights[i, : peaks.shape[0]]
+        near = near_truth(peaks, T_gt[i][None])
+        if not near.any():
+            continue
+        dom = int(np.argmax(w))
+        minor_w.append(float(np.sum(w) - w[dom]) / float(np.sum(w)))
+        in_minor.append(not bool(near[dom]))
+    if not minor_w:
+        return {"minor_weight_mean": float("nan"), "truth_minor_share": float("nan"), "truth_mode_frames": 0}
+    return {"minor_weight_mean": float(np.mean(minor_w)), "truth_minor_share": float(np.mean(in_minor)),
+            "truth_mode_frames": len(minor_w)}
 
 
 def reference_rates(frames: np.ndarray, bimodal: np.ndarray, assessed: np.ndarray, bimodal_modes: np.ndarray,

@@ -50,7 +50,7 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
-from pinpoint_fg.eval.modes import ResultModes, modes_of_result, reference_rates, truth_kept
+from pinpoint_fg.eval.modes import ResultModes, mode_weight_calibration, modes_of_result, reference_rates, truth_kept
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
@@ -85,7 +85,8 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "trans_q95_mm", "rot_q95_deg", "nlls_trans", "nlls_rot", "is_trans", "is_rot", "coverage_trans", "coverage_rot",
     "bimodal_share", "truth_in_dominant_share", "bimodal_frames",
     "ambiguous_frames", "clear_frames", "bimodal_ambiguous_rate", "bimodal_clear_rate",
-    "bimodal_modes_share", "truth_kept_modes_share", "truth_kept_particles_share", "reference",
+    "bimodal_modes_share", "truth_kept_modes_share", "truth_kept_particles_share",
+    "minor_weight_mean", "truth_minor_share", "truth_mode_frames", "reference",
     "ref_multimodal_frames", "ref_single_frames", "bimodal_ref_multi_rate", "bimodal_ref_single_rate",
     "bimodal_modes_ref_multi_rate", "bimodal_modes_ref_single_rate",
     "floor_trans_mm", "floor_rot_deg", "trans_floor_multiple", "rot_floor_multiple",
@@ -317,6 +318,7 @@ def _evaluate_one(
     hm = modes.has_modes
     row["bimodal_modes_share"] = float(np.mean(modes.bimodal[hm])) if hm.any() else float("nan")
     row.update(truth_kept(res, modes, T_gt, has_gt))
+    row.update(mode_weight_calibration(modes, T_gt, has_gt))
     if reference is not None:
         row["reference"] = reference[0]
         row.update(reference_rates(res.frame, bimodal, assessed, modes.bimodal, hm, reference[1], reference[2]))

@@ -70,6 +70,18 @@ class Linearization:
     """(N,) the newest pose's own terms plus the last motion term at the current poses (L > 1)."""
 
 
+    def append(self, other: Linearization) -> Linearization:
+        """This model's hypotheses followed by ``other``'s (same window length)."""
+        def cat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return np.concatenate([a, b], axis=0)
+        return Linearization(cat(self.value, other.value), cat(self.grad, other.grad), cat(self.hess, other.hess),
+                             [cat(a, b) for a, b in zip(self.cond_inv, other.cond_inv, strict=True)],
+                             [cat(a, b) for a, b in zip(self.cond_g, other.cond_g, strict=True)],
+                             [cat(a, b) for a, b in zip(self.cond_B, other.cond_B, strict=True)],
+                             cat(self.window_value, other.window_value),
+                             None if self.newest_part is None or other.newest_part is None
+                             else cat(self.newest_part, other.newest_part))
+
     def subset(self, index: np.ndarray | list[int]) -> Linearization:
         """The same model for hypotheses ``index`` only (matches :meth:`pinpoint_fg.window.Window.subset`)."""
         index = np.asarray(index)

@@ -155,7 +155,7 @@ def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
     return np.eye(3) - a[..., None, None] * W + b[..., None, None] * (W @ W)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x b`` over the last axis (elementwise: cheaper than ``np.cross`` for small batches)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
@@ -220,8 +220,8 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     ths = np.where(small, 1.0, th)
     c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
     u = (T[..., None, :3, 3] @ R)[..., 0, :]  # R^T t
-    wu = _cross(w, u)
-    v = u + 0.5 * wu + c[..., None] * _cross(w, wu)
+    wu = cross(w, u)
+    v = u + 0.5 * wu + c[..., None] * cross(w, wu)
     return np.concatenate([w, v], axis=-1)
 
 

@@ -33,7 +33,7 @@ def skew(w: np.ndarray) -> np.ndarray:
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation vector ``(..., 3)`` -> rotation matrix ``(..., 3, 3)``."""
     w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
     ths = np.where(small, 1.0, th)
@@ -116,7 +116,7 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=float)
     d = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
     c = 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0)
-    s = 0.5 * np.sqrt(np.sum(d * d, axis=-1))
+    s = 0.5 * np.sqrt((d * d).sum(axis=-1))
     th = np.arctan2(s, c)
     tiny = s < 1e-8  # theta / (2 sin theta) = 1/2 + theta^2 / 12 + O(theta^4)
     w = d * np.where(tiny, 0.5 + th * th / 12.0, th / (2.0 * np.where(tiny, 1.0, s)))[..., None]
@@ -133,7 +133,7 @@ def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
     is finite at theta = pi (where cot(pi/2) = 0).
     """
     w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
     ths = np.where(small, 1.0, th)
@@ -145,7 +145,7 @@ def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
 def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
     """Right Jacobian of SO(3): ``Exp(w + d) ≈ Exp(w) Exp(Jr(w) d)``."""
     w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
     ths = np.where(small, 1.0, th)
@@ -164,7 +164,7 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _q_left(phi: np.ndarray, rho: np.ndarray) -> np.ndarray:
     """Barfoot's ``Q(rho, phi)`` block of the SE(3) left Jacobian (batched)."""
-    th2 = np.sum(phi * phi, axis=-1)
+    th2 = (phi * phi).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < 1e-3
     ths = np.where(small, 1.0, th)
@@ -187,7 +187,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     """``Exp`` of tangent vectors ``(..., 6)`` = ``[omega; v]`` -> poses ``(..., 4, 4)`` (GTSAM's Expmap)."""
     xi = np.asarray(xi, dtype=float)
     w, v = xi[..., :3], xi[..., 3:]
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
     ths = np.where(small, 1.0, th)
@@ -214,7 +214,7 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]
     w = so3_log(R)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
     ths = np.where(small, 1.0, th)

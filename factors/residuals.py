@@ -39,7 +39,7 @@ def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
         T = T[None]
     if T.ndim != 3 or T.shape[1:] != (4, 4):
         raise ValueError(f"cam_T_needle must have shape (N, 4, 4) or (4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
+    if not np.isfinite(T).all():
         raise ValueError("cam_T_needle contains NaN or infinite values")
     return T
 
@@ -248,7 +248,7 @@ def grasp_perpendicular_residual(
     zg = np.asarray(cam_z_grasper, dtype=float)
     zg = zg / np.linalg.norm(zg, axis=-1, keepdims=True)
     R = T[:, :3, :3]
-    r = np.sum((R @ tg) * zg, axis=-1)
+    r = ((R @ tg) * zg).sum(axis=-1)
     Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ skew(tg))
     J = np.concatenate([Jw, np.zeros((T.shape[0], 3))], axis=1)
     return r[:, None], J[:, None, :]

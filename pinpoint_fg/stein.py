@@ -245,8 +245,19 @@ def _bandwidth_from_d2(d2: np.ndarray, floor: float) -> float:
     n = d2.shape[0]
     if n < 2:
         return float(floor)
-    m = float(np.median(d2[_upper_pairs(n)]))
+    m = _median(d2[_upper_pairs(n)])
     return max(m / math.log(n), float(floor))
+
+
+def _median(v: np.ndarray) -> float:
+    """``np.median`` of a 1-D float array, bitwise, without its generic machinery: the middle order statistic, or
+    the mean ``(a + b) / 2`` of the two middle ones (NaN if any value is NaN)."""
+    n = v.shape[0]
+    k = n // 2
+    part = np.partition(v, (k - 1, k, n - 1) if n % 2 == 0 else (k, n - 1))
+    if np.isnan(part[-1]):
+        return float("nan")
+    return float(part[k]) if n % 2 else float((part[k - 1] + part[k]) / 2.0)
 
 
 def whitened_noise_floor(Q: np.ndarray, scale: np.ndarray) -> float:

@@ -243,8 +243,9 @@ class SvnTracker(Tracker):
                 trial = None  # the last trial is not the accepted step
             delta = delta * scale[:, None]
             self.window.move_newest(delta, lin, newest=trial)
-            rot = np.linalg.norm(delta[:, :3], axis=1)
-            tra = np.linalg.norm(delta[:, 3:], axis=1)
+            d_rot, d_tra = delta[:, :3], delta[:, 3:]
+            rot = np.sqrt(np.add.reduce(d_rot * d_rot, axis=1))  # np.linalg.norm(., axis=1)'s own sums, without its
+            tra = np.sqrt(np.add.reduce(d_tra * d_tra, axis=1))  # argument handling
             best = -float(np.min(value + self.window.evidence))
             q_tra, q_rot = quantile_rows(np.stack([tra, rot]), 0.95)  # = np.quantile(., 0.95, axis=1), cheaper
             small = q_tra < s.stop_trans_m and q_rot < s.stop_rot_rad

@@ -21,11 +21,12 @@ def skew(w: np.ndarray) -> np.ndarray:
     """``[w]x`` for ``w`` of shape ``(..., 3)`` -> ``(..., 3, 3)``, so ``[w]x @ p = w x p``."""
     w = np.asarray(w, dtype=float)
     out = np.zeros(w.shape[:-1] + (3, 3))
-    out[..., 0, 1] = -w[..., 2]
+    nw = -w  # one negation for the three negative entries
+    out[..., 0, 1] = nw[..., 2]
     out[..., 0, 2] = w[..., 1]
     out[..., 1, 0] = w[..., 2]
-    out[..., 1, 2] = -w[..., 0]
-    out[..., 2, 0] = -w[..., 1]
+    out[..., 1, 2] = nw[..., 0]
+    out[..., 2, 0] = nw[..., 1]
     out[..., 2, 1] = w[..., 0]
     return out
 
@@ -114,7 +115,10 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     against the quaternion path on every angle).
     """
     R = np.asarray(R, dtype=float)
-    d = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    d = np.empty(R.shape[:-1])  # vee(R - R^T), filled in place (np.stack's result, without its overhead)
+    np.subtract(R[..., 2, 1], R[..., 1, 2], out=d[..., 0])
+    np.subtract(R[..., 0, 2], R[..., 2, 0], out=d[..., 1])
+    np.subtract(R[..., 1, 0], R[..., 0, 1], out=d[..., 2])
     c = 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0)
     s = 0.5 * np.sqrt((d * d).sum(axis=-1))
     th = np.arctan2(s, c)
@@ -159,7 +163,11 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x b`` over the last axis (elementwise: cheaper than ``np.cross`` for small batches)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))  # filled in place: np.stack's result, without its overhead
+    np.subtract(a1 * b2, a2 * b1, out=out[..., 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
+    return out
 
 
 def _q_left(phi: np.ndarray, rho: np.ndarray) -> np.ndarray:

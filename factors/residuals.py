@@ -32,6 +32,24 @@ _CONIC_COEF_INDEX = np.array([[0, 1, 4, 2, 5, 8], [9, 9, 9, 0, 1, 2], [9, 9, 9, 
 _CONIC_COEF_MULT = np.array([[1.0] * 6, [1.0] * 5 + [2.0], [1.0] * 5 + [2.0]])
 
 
+#: :func:`_skew_const`'s results by the vector's bytes (needle points, unit axes: a handful per run).
+_SKEW_CONST: dict[bytes, np.ndarray] = {}  # key: the vector's bytes and shape
+
+
+def _skew_const(x: np.ndarray) -> np.ndarray:
+    """``skew(x)`` of one constant 3-vector (a needle point, an axis), computed once per value (read-only)."""
+    x = np.asarray(x, dtype=float)
+    key = x.tobytes() + bytes(str(x.shape), "ascii")
+    out = _SKEW_CONST.get(key)
+    if out is None:
+        if len(_SKEW_CONST) > 256:  # never more than a few in practice; bounded all the same
+            _SKEW_CONST.clear()
+        out = skew(x)
+        out.flags.writeable = False
+        _SKEW_CONST[key] = out
+    return out
+
+
 def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
     """Promote ``(4, 4)`` to ``(1, 4, 4)``; check the shape and finiteness of a pose batch."""
     T = np.asarray(cam_T_needle, dtype=float)
@@ -50,7 +68,7 @@ def point_jacobian(cam_T_needle: np.ndarray, needle_p: np.ndarray) -> tuple[np.n
     R, t = T[:, :3, :3], T[:, :3, 3]
     X = np.asarray(needle_p, dtype=float)
     p = R @ X + t
-    J = np.concatenate([-R @ skew(X), R], axis=2)
+    J = np.concatenate([-R @ _skew_const(X), R], axis=2)
     return p, J
 
 
@@ -74,7 +92,10 @@ def keypoint_residual(
     iz = 1.0 / z
     u = fx * p[:, 0] * iz + cx
     v = fy * p[:, 1] * iz + cy
-    r = np.stack([u, v], axis=1) - np.asarray(measured_px, dtype=float)
+    uv = np.empty((p.shape[0], 2))  # np.stack([u, v], axis=1), filled in place
+    uv[:, 0] = u
+    uv[:, 1] = v
+    r = uv - np.asarray(measured_px, dtype=float)
     Jpi = np.zeros((p.shape[0], 2, 3))
     Jpi[:, 0, 0] = fx * iz
     Jpi[:, 0, 2] = -fx * p[:, 0] * iz * iz
@@ -155,8 +176,8 @@ def conic_residual(
         # dh/dxi (N, 3, 6): d(R e_k) = -R [e_k]x omega, dt = R v
         e = np.eye(3)
         zero3 = np.zeros((N, 3, 3))
-        Dh1 = np.concatenate([-KR @ skew(e[0]), zero3], axis=2)
-        Dh2 = np.concatenate([-KR @ skew(e[1]), zero3], axis=2)
+        Dh1 = np.concatenate([-KR @ _skew_const(e[0]), zero3], axis=2)
+        Dh2 = np.concatenate([-KR @ _skew_const(e[1]), zero3], axis=2)
         Dh3 = np.concatenate([zero3, KR], axis=2)
         S1, S2, S3 = skew(h1), skew(h2), skew(h3)
         DA = np.stack([-S3 @ Dh2 + S2 @ Dh3, -S1 @ Dh3 + S3 @ Dh1, -S2 @ Dh1 + S1 @ Dh2], axis=1)  # (N, 3, 3, 6)
@@ -249,7 +270,7 @@ def grasp_perpendicular_residual(
     zg = zg / np.linalg.norm(zg, axis=-1, keepdims=True)
     R = T[:, :3, :3]
     r = ((R @ tg) * zg).sum(axis=-1)
-    Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ skew(tg))
+    Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ _skew_const(tg))
     J = np.concatenate([Jw, np.zeros((T.shape[0], 3))], axis=1)
     return r[:, None], J[:, None, :]
 

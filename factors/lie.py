@@ -16,6 +16,38 @@ import numpy as np
 
 _SMALL = 1e-4  # below this angle the closed forms lose digits; Taylor series take over
 
+_NONE, _ALL, _MIXED = 0, 1, 2  # which entries of a batch take the Taylor branch (:func:`_branch`)
+
+
+def _branch(small: np.ndarray) -> int:
+    """``_NONE`` / ``_ALL`` when no / every entry of ``small`` is set, else ``_MIXED`` (also for a single, 0-d one)."""
+    if small.ndim == 0:
+        return _MIXED
+    if not small.any():
+        return _NONE
+    return _ALL if small.all() else _MIXED
+
+
+def _pick(branch: int, small: np.ndarray, taylor, closed) -> np.ndarray:
+    """``np.where(small, taylor(), closed())``, evaluating only the branch every entry takes when they agree.
+
+    The same values bit for bit (``np.where`` selects elementwise; the skipped branch is never selected):
+    at ~50 poses per call NumPy's per-call overhead, not arithmetic, is the cost, and most batches are all
+    above the Taylor threshold.
+    """
+    if branch == _NONE:
+        return closed()
+    if branch == _ALL:
+        return taylor()
+    return np.where(small, taylor(), closed())
+
+
+def _safe_angle(branch: int, small: np.ndarray, th: np.ndarray) -> np.ndarray:
+    """``np.where(small, 1.0, th)``: the angle the closed forms divide by (1 where the series is used)."""
+    if branch == _NONE:
+        return th
+    return np.where(small, 1.0, th)
+
 
 def skew(w: np.ndarray) -> np.ndarray:
     """``[w]x`` for ``w`` of shape ``(..., 3)`` -> ``(..., 3, 3)``, so ``[w]x @ p = w x p``."""
@@ -37,9 +69,10 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    a = _pick(br, small, lambda: 1.0 - th2 / 6.0 + th2 * th2 / 120.0, lambda: np.sin(ths) / ths)
+    b = _pick(br, small, lambda: 0.5 - th2 / 24.0 + th2 * th2 / 720.0, lambda: (1.0 - np.cos(ths)) / (ths * ths))
     W = skew(w)
     eye = np.broadcast_to(np.eye(3), W.shape)
     return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
@@ -123,7 +156,8 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     s = 0.5 * np.sqrt((d * d).sum(axis=-1))
     th = np.arctan2(s, c)
     tiny = s < 1e-8  # theta / (2 sin theta) = 1/2 + theta^2 / 12 + O(theta^4)
-    w = d * np.where(tiny, 0.5 + th * th / 12.0, th / (2.0 * np.where(tiny, 1.0, s)))[..., None]
+    tb = _branch(tiny)
+    w = d * _pick(tb, tiny, lambda: 0.5 + th * th / 12.0, lambda: th / (2.0 * _safe_angle(tb, tiny, s)))[..., None]
     near = c < _LOG_NEAR_PI_COS
     if near.any():
         w[near] = _so3_log_quat(R[near])
@@ -140,8 +174,10 @@ def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
     th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    c = _pick(br, small, lambda: 1.0 / 12.0 + th2 / 720.0,
+              lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
     W = skew(w)
     return np.eye(3) + 0.5 * W + c[..., None, None] * (W @ W)
 
@@ -152,9 +188,10 @@ def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
     th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / (ths * ths))
-    b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / (ths * ths * ths))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    a = _pick(br, small, lambda: 0.5 - th2 / 24.0, lambda: (1.0 - np.cos(ths)) / (ths * ths))
+    b = _pick(br, small, lambda: 1.0 / 6.0 - th2 / 120.0, lambda: (ths - np.sin(ths)) / (ths * ths * ths))
     W = skew(w)
     return np.eye(3) - a[..., None, None] * W + b[..., None, None] * (W @ W)
 
@@ -175,11 +212,13 @@ def _q_left(phi: np.ndarray, rho: np.ndarray) -> np.ndarray:
     th2 = (phi * phi).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < 1e-3
-    ths = np.where(small, 1.0, th)
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
     s, c = np.sin(ths), np.cos(ths)
-    c1 = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - s) / ths**3)
-    c2 = np.where(small, 1.0 / 24.0 - th2 / 720.0, (th2 + 2.0 * c - 2.0) / (2.0 * ths**4))
-    c3 = np.where(small, 1.0 / 120.0 - th2 / 2520.0, (2.0 * ths - 3.0 * s + ths * c) / (2.0 * ths**5))
+    c1 = _pick(br, small, lambda: 1.0 / 6.0 - th2 / 120.0, lambda: (ths - s) / ths**3)
+    c2 = _pick(br, small, lambda: 1.0 / 24.0 - th2 / 720.0, lambda: (th2 + 2.0 * c - 2.0) / (2.0 * ths**4))
+    c3 = _pick(br, small, lambda: 1.0 / 120.0 - th2 / 2520.0,
+               lambda: (2.0 * ths - 3.0 * s + ths * c) / (2.0 * ths**5))
     P, Rh = skew(phi), skew(rho)
     PR, RP = P @ Rh, Rh @ P
     PRP = PR @ P
@@ -198,11 +237,12 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
     sn = np.sin(ths)
-    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, sn / ths)
-    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
-    c = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - sn) / (ths * ths * ths))
+    a = _pick(br, small, lambda: 1.0 - th2 / 6.0 + th2 * th2 / 120.0, lambda: sn / ths)
+    b = _pick(br, small, lambda: 0.5 - th2 / 24.0 + th2 * th2 / 720.0, lambda: (1.0 - np.cos(ths)) / (ths * ths))
+    c = _pick(br, small, lambda: 1.0 / 6.0 - th2 / 120.0, lambda: (ths - sn) / (ths * ths * ths))
     W = skew(w)
     WW = W @ W
     T = np.zeros(xi.shape[:-1] + (4, 4))
@@ -225,8 +265,10 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    c = _pick(br, small, lambda: 1.0 / 12.0 + th2 / 720.0,
+              lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
     u = (T[..., None, :3, 3] @ R)[..., 0, :]  # R^T t
     wu = cross(w, u)
     v = u + 0.5 * wu + c[..., None] * cross(w, wu)

@@ -88,7 +88,9 @@ def keypoint_residual(
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     p, Jp = point_jacobian(cam_T_needle, needle_p)
     z = p[:, 2]
-    z = np.where(np.abs(z) < MIN_DEPTH_M, np.where(z < 0, -MIN_DEPTH_M, MIN_DEPTH_M), z)
+    clamp = np.abs(z) < MIN_DEPTH_M
+    if clamp.any():
+        z = np.where(clamp, np.where(z < 0, -MIN_DEPTH_M, MIN_DEPTH_M), z)
     iz = 1.0 / z
     u = fx * p[:, 0] * iz + cx
     v = fy * p[:, 1] * iz + cy
@@ -201,7 +203,8 @@ def conic_residual(
     f2d = (f * sc / SAMPSON_MAX_PX) ** 2
     den = g2s + f2d
     ok = den > 0
-    iden = np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
+    # 0/0 := 0 where the denominator vanishes; a batch without such pixels (the usual case) skips the two selects
+    iden = 1.0 / den if ok.all() else np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
     r = sc * f * gn * iden
     if not jacobian:
         return r, None
@@ -209,7 +212,8 @@ def conic_residual(
     # d|g| = (g1 dg1 + g2 dg2) / |g| (0 where g = 0)
     c_f = sc * gn * (1.0 - 2.0 * f2d * iden) * iden
     c_g = sc * f * (1.0 - 2.0 * g2s * iden) * iden
-    q = np.where(gn > 0, c_g / np.where(gn > 0, gn, 1.0), 0.0)
+    pos = gn > 0
+    q = c_g / gn if pos.all() else np.where(pos, c_g / np.where(pos, gn, 1.0), 0.0)
     # J = out_f c_f + out_g1 (g1 q) + out_g2 (g2 q), summed in that order into one buffer (N, 6, M)
     J = out[:, 1:, 0] * c_f[:, None]
     tmp = out[:, 1:, 1] * (g1 * q)[:, None]

@@ -211,7 +211,7 @@ def _check_particles(xi: np.ndarray, name: str = "xi") -> np.ndarray:
     xi = np.asarray(xi, dtype=float)
     if xi.ndim != 2 or xi.shape[0] == 0:
         raise InputError(f"{name} must have shape (N, d) with N >= 1, got {xi.shape}", column=name)
-    if not np.all(np.isfinite(xi)):
+    if not np.isfinite(xi).all():
         raise InputError(f"{name} contains non-finite values", column=name)
     return xi
 
@@ -368,7 +368,9 @@ def stein_step(
         raise InputError(f"config.scale has {len(config.scale)} entries, particles have d={d}",
                          column="scale")
     # A non-finite gradient carries no direction: zero it (the repulsion still acts).
-    g = np.where(np.isfinite(g), g, 0.0)
+    finite_g = np.isfinite(g)
+    if not finite_g.all():
+        g = np.where(finite_g, g, 0.0)
 
     S = config.kernel_scale
     # one pass over the pairs: differences, whitened squared distances, bandwidth, kernel, its gradient
@@ -377,7 +379,8 @@ def stein_step(
     d2 = np.einsum("jik,jik->ji", white, white)
     h = _bandwidth_from_d2(d2, config.bandwidth_floor)
     K = np.exp(-d2 / (2.0 * h))
-    gradK = K[:, :, None] * diff / (S**2 * h)  # (N, N, d): d k(xi_j, xi_i) / d xi_j
+    gradK = K[:, :, None] * diff  # (N, N, d): d k(xi_j, xi_i) / d xi_j, divided in place:
+    gradK /= S**2 * h
     c = K.sum(axis=0) if config.normalise == "kernel-sum" else np.full(n, float(n))
     repulsion = gradK.sum(axis=0)  # (N, d): sum_j grad_{xi_j} k(xi_j, xi_i)
     phi = (K.T @ g + repulsion) / c[:, None]

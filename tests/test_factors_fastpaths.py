@@ -10,7 +10,7 @@ from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import cross, se3_exp
 from factors.robust import RobustLoss
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, gauss_newton_frames
-from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.stein import SteinConfig, _median, floor_hessians, quantile_rows, stein_step
 from tests.poses import KINDS, sample_poses
@@ -262,3 +262,15 @@ def test_likelihood_conic_whitening_in_place_equals_the_products() -> None:
                                                                                          NEEDLE.radius_m, pts)))
     assert np.array_equal(loss, lik._loss["conic"].loss(d).sum(axis=1))
     assert np.array_equal(e_irls, e * sw) and np.array_equal(J_irls, Jw * sw[:, :, None])
+
+
+def test_sqrt_information_is_kept_per_covariance_value() -> None:
+    """The whitening: computed once per covariance value, handed out as copies, recomputed after an in-place change."""
+    n = ResidualNoise(np.zeros(2), np.array([[4.0, 0.5], [0.5, 1.0]]))
+    ref = np.linalg.inv(np.linalg.cholesky(n.cov))
+    a, b = n.sqrt_information, n.sqrt_information
+    assert np.array_equal(a, ref) and np.array_equal(b, ref) and a is not b
+    a[:] = 0.0  # a caller's copy: the kept one is untouched
+    assert np.array_equal(n.sqrt_information, ref)
+    n.cov[:] = 4.0 * n.cov
+    assert np.array_equal(n.sqrt_information, np.linalg.inv(np.linalg.cholesky(n.cov)))

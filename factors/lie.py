@@ -16,16 +16,49 @@ import numpy as np
 
 _SMALL = 1e-4  # below this angle the closed forms lose digits; Taylor series take over
 
+_NONE, _ALL, _MIXED = 0, 1, 2  # which entries of a batch take the Taylor branch (:func:`_branch`)
+
+
+def _branch(small: np.ndarray) -> int:
+    """``_NONE`` / ``_ALL`` when no / every entry of ``small`` is set, else ``_MIXED`` (also for a single, 0-d one)."""
+    if small.ndim == 0:
+        return _MIXED
+    if not small.any():
+        return _NONE
+    return _ALL if small.all() else _MIXED
+
+
+def _pick(branch: int, small: np.ndarray, taylor, closed) -> np.ndarray:
+    """``np.where(small, taylor(), closed())``, evaluating only the branch every entry takes when they agree.
+
+    The same values bit for bit (``np.where`` selects elementwise; the skipped branch is never selected):
+    at ~50 poses per call NumPy's per-call overhead, not arithmetic, is the cost, and most batches are all
+    above the Taylor threshold.
+    """
+    if branch == _NONE:
+        return closed()
+    if branch == _ALL:
+        return taylor()
+    return np.where(small, taylor(), closed())
+
+
+def _safe_angle(branch: int, small: np.ndarray, th: np.ndarray) -> np.ndarray:
+    """``np.where(small, 1.0, th)``: the angle the closed forms divide by (1 where the series is used)."""
+    if branch == _NONE:
+        return th
+    return np.where(small, 1.0, th)
+
 
 def skew(w: np.ndarray) -> np.ndarray:
     """``[w]x`` for ``w`` of shape ``(..., 3)`` -> ``(..., 3, 3)``, so ``[w]x @ p = w x p``."""
     w = np.asarray(w, dtype=float)
     out = np.zeros(w.shape[:-1] + (3, 3))
-    out[..., 0, 1] = -w[..., 2]
+    nw = -w  # one negation for the three negative entries
+    out[..., 0, 1] = nw[..., 2]
     out[..., 0, 2] = w[..., 1]
     out[..., 1, 0] = w[..., 2]
-    out[..., 1, 2] = -w[..., 0]
-    out[..., 2, 0] = -w[..., 1]
+    out[..., 1, 2] = nw[..., 0]
+    out[..., 2, 0] = nw[..., 1]
     out[..., 2, 1] = w[..., 0]
     return out
 
@@ -33,12 +66,13 @@ def skew(w: np.ndarray) -> np.ndarray:
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation vector ``(..., 3)`` -> rotation matrix ``(..., 3, 3)``."""
     w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    a = _pick(br, small, lambda: 1.0 - th2 / 6.0 + th2 * th2 / 120.0, lambda: np.sin(ths) / ths)
+    b = _pick(br, small, lambda: 0.5 - th2 / 24.0 + th2 * th2 / 720.0, lambda: (1.0 - np.cos(ths)) / (ths * ths))
     W = skew(w)
     eye = np.broadcast_to(np.eye(3), W.shape)
     return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
@@ -114,12 +148,16 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     against the quaternion path on every angle).
     """
     R = np.asarray(R, dtype=float)
-    d = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    d = np.empty(R.shape[:-1])  # vee(R - R^T), filled in place (np.stack's result, without its overhead)
+    np.subtract(R[..., 2, 1], R[..., 1, 2], out=d[..., 0])
+    np.subtract(R[..., 0, 2], R[..., 2, 0], out=d[..., 1])
+    np.subtract(R[..., 1, 0], R[..., 0, 1], out=d[..., 2])
     c = 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0)
-    s = 0.5 * np.sqrt(np.sum(d * d, axis=-1))
+    s = 0.5 * np.sqrt((d * d).sum(axis=-1))
     th = np.arctan2(s, c)
     tiny = s < 1e-8  # theta / (2 sin theta) = 1/2 + theta^2 / 12 + O(theta^4)
-    w = d * np.where(tiny, 0.5 + th * th / 12.0, th / (2.0 * np.where(tiny, 1.0, s)))[..., None]
+    tb = _branch(tiny)
+    w = d * _pick(tb, tiny, lambda: 0.5 + th * th / 12.0, lambda: th / (2.0 * _safe_angle(tb, tiny, s)))[..., None]
     near = c < _LOG_NEAR_PI_COS
     if near.any():
         w[near] = _so3_log_quat(R[near])
@@ -133,11 +171,13 @@ def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
     is finite at theta = pi (where cot(pi/2) = 0).
     """
     w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    c = _pick(br, small, lambda: 1.0 / 12.0 + th2 / 720.0,
+              lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
     W = skew(w)
     return np.eye(3) + 0.5 * W + c[..., None, None] * (W @ W)
 
@@ -145,33 +185,40 @@ def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
 def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
     """Right Jacobian of SO(3): ``Exp(w + d) ≈ Exp(w) Exp(Jr(w) d)``."""
     w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / (ths * ths))
-    b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / (ths * ths * ths))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    a = _pick(br, small, lambda: 0.5 - th2 / 24.0, lambda: (1.0 - np.cos(ths)) / (ths * ths))
+    b = _pick(br, small, lambda: 1.0 / 6.0 - th2 / 120.0, lambda: (ths - np.sin(ths)) / (ths * ths * ths))
     W = skew(w)
     return np.eye(3) - a[..., None, None] * W + b[..., None, None] * (W @ W)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x b`` over the last axis (elementwise: cheaper than ``np.cross`` for small batches)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))  # filled in place: np.stack's result, without its overhead
+    np.subtract(a1 * b2, a2 * b1, out=out[..., 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
+    return out
 
 
 def _q_left(phi: np.ndarray, rho: np.ndarray) -> np.ndarray:
     """Barfoot's ``Q(rho, phi)`` block of the SE(3) left Jacobian (batched)."""
-    th2 = np.sum(phi * phi, axis=-1)
+    th2 = (phi * phi).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < 1e-3
-    ths = np.where(small, 1.0, th)
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
     s, c = np.sin(ths), np.cos(ths)
-    c1 = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - s) / ths**3)
-    c2 = np.where(small, 1.0 / 24.0 - th2 / 720.0, (th2 + 2.0 * c - 2.0) / (2.0 * ths**4))
-    c3 = np.where(small, 1.0 / 120.0 - th2 / 2520.0, (2.0 * ths - 3.0 * s + ths * c) / (2.0 * ths**5))
+    c1 = _pick(br, small, lambda: 1.0 / 6.0 - th2 / 120.0, lambda: (ths - s) / ths**3)
+    c2 = _pick(br, small, lambda: 1.0 / 24.0 - th2 / 720.0, lambda: (th2 + 2.0 * c - 2.0) / (2.0 * ths**4))
+    c3 = _pick(br, small, lambda: 1.0 / 120.0 - th2 / 2520.0,
+               lambda: (2.0 * ths - 3.0 * s + ths * c) / (2.0 * ths**5))
     P, Rh = skew(phi), skew(rho)
     PR, RP = P @ Rh, Rh @ P
     PRP = PR @ P
@@ -187,14 +234,15 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     """``Exp`` of tangent vectors ``(..., 6)`` = ``[omega; v]`` -> poses ``(..., 4, 4)`` (GTSAM's Expmap)."""
     xi = np.asarray(xi, dtype=float)
     w, v = xi[..., :3], xi[..., 3:]
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
     sn = np.sin(ths)
-    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, sn / ths)
-    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
-    c = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - sn) / (ths * ths * ths))
+    a = _pick(br, small, lambda: 1.0 - th2 / 6.0 + th2 * th2 / 120.0, lambda: sn / ths)
+    b = _pick(br, small, lambda: 0.5 - th2 / 24.0 + th2 * th2 / 720.0, lambda: (1.0 - np.cos(ths)) / (ths * ths))
+    c = _pick(br, small, lambda: 1.0 / 6.0 - th2 / 120.0, lambda: (ths - sn) / (ths * ths * ths))
     W = skew(w)
     WW = W @ W
     T = np.zeros(xi.shape[:-1] + (4, 4))
@@ -214,14 +262,16 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]
     w = so3_log(R)
-    th2 = np.sum(w * w, axis=-1)
+    th2 = (w * w).sum(axis=-1)
     th = np.sqrt(th2)
     small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th2 / 720.0, 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    c = _pick(br, small, lambda: 1.0 / 12.0 + th2 / 720.0,
+              lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
     u = (T[..., None, :3, 3] @ R)[..., 0, :]  # R^T t
-    wu = _cross(w, u)
-    v = u + 0.5 * wu + c[..., None] * _cross(w, wu)
+    wu = cross(w, u)
+    v = u + 0.5 * wu + c[..., None] * cross(w, wu)
     return np.concatenate([w, v], axis=-1)
 
 

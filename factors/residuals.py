@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factors.lie import se3_adjoint, se3_inverse, se3_log, se3_right_jacobian_inv, skew
+from factors.lie import cross, se3_adjoint, se3_inverse, se3_log, se3_right_jacobian_inv, skew
 
 #: Depths with |z| below this (metres) are clamped (keeping the sign) before dividing.
 MIN_DEPTH_M = 1e-6
@@ -32,6 +32,24 @@ _CONIC_COEF_INDEX = np.array([[0, 1, 4, 2, 5, 8], [9, 9, 9, 0, 1, 2], [9, 9, 9, 
 _CONIC_COEF_MULT = np.array([[1.0] * 6, [1.0] * 5 + [2.0], [1.0] * 5 + [2.0]])
 
 
+#: :func:`_skew_const`'s results by the vector's bytes (needle points, unit axes: a handful per run).
+_SKEW_CONST: dict[bytes, np.ndarray] = {}  # key: the vector's bytes and shape
+
+
+def _skew_const(x: np.ndarray) -> np.ndarray:
+    """``skew(x)`` of one constant 3-vector (a needle point, an axis), computed once per value (read-only)."""
+    x = np.asarray(x, dtype=float)
+    key = x.tobytes() + bytes(str(x.shape), "ascii")
+    out = _SKEW_CONST.get(key)
+    if out is None:
+        if len(_SKEW_CONST) > 256:  # never more than a few in practice; bounded all the same
+            _SKEW_CONST.clear()
+        out = skew(x)
+        out.flags.writeable = False
+        _SKEW_CONST[key] = out
+    return out
+
+
 def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
     """Promote ``(4, 4)`` to ``(1, 4, 4)``; check the shape and finiteness of a pose batch."""
     T = np.asarray(cam_T_needle, dtype=float)
@@ -39,7 +57,7 @@ def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
         T = T[None]
     if T.ndim != 3 or T.shape[1:] != (4, 4):
         raise ValueError(f"cam_T_needle must have shape (N, 4, 4) or (4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
+    if not np.isfinite(T).all():
         raise ValueError("cam_T_needle contains NaN or infinite values")
     return T
 
@@ -50,7 +68,7 @@ def point_jacobian(cam_T_needle: np.ndarray, needle_p: np.ndarray) -> tuple[np.n
     R, t = T[:, :3, :3], T[:, :3, 3]
     X = np.asarray(needle_p, dtype=float)
     p = R @ X + t
-    J = np.concatenate([-R @ skew(X), R], axis=2)
+    J = np.concatenate([-R @ _skew_const(X), R], axis=2)
     return p, J
 
 
@@ -70,11 +88,16 @@ def keypoint_residual(
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     p, Jp = point_jacobian(cam_T_needle, needle_p)
     z = p[:, 2]
-    z = np.where(np.abs(z) < MIN_DEPTH_M, np.where(z < 0, -MIN_DEPTH_M, MIN_DEPTH_M), z)
+    clamp = np.abs(z) < MIN_DEPTH_M
+    if clamp.any():
+        z = np.where(clamp, np.where(z < 0, -MIN_DEPTH_M, MIN_DEPTH_M), z)
     iz = 1.0 / z
     u = fx * p[:, 0] * iz + cx
     v = fy * p[:, 1] * iz + cy
-    r = np.stack([u, v], axis=1) - np.asarray(measured_px, dtype=float)
+    uv = np.empty((p.shape[0], 2))  # np.stack([u, v], axis=1), filled in place
+    uv[:, 0] = u
+    uv[:, 1] = v
+    r = uv - np.asarray(measured_px, dtype=float)
     Jpi = np.zeros((p.shape[0], 2, 3))
     Jpi[:, 0, 0] = fx * iz
     Jpi[:, 0, 2] = -fx * p[:, 0] * iz * iz
@@ -93,7 +116,7 @@ def needle_image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float)
     T = as_pose_batch(cam_T_needle)
     K = np.asarray(K, dtype=float)
     h1, h2, h3 = T[:, :3, 0] @ K.T, T[:, :3, 1] @ K.T, T[:, :3, 3] @ K.T
-    A = np.stack([np.cross(h2, h3), np.cross(h3, h1), np.cross(h1, h2)], axis=1)
+    A = cross(np.stack([h2, h3, h1], axis=1), np.stack([h3, h1, h2], axis=1))  # rows h2 x h3, h3 x h1, h1 x h2
     C = np.swapaxes(A, 1, 2) @ np.diag([1.0, 1.0, -(float(radius_m) ** 2)]) @ A
     C = C / np.maximum(np.linalg.norm(C, axis=(1, 2)), 1e-300)[:, None, None]
     sign = np.where(C[:, 0, 0] + C[:, 1, 1] < 0, -1.0, 1.0)
@@ -136,28 +159,27 @@ def conic_residual(
     KR = K @ R
     h1, h2, h3 = KR[:, :, 0], KR[:, :, 1], t @ K.T
     # adjugate rows a1 = h2 x h3, a2 = h3 x h1, a3 = h1 x h2
-    A = np.stack([np.cross(h2, h3), np.cross(h3, h1), np.cross(h1, h2)], axis=1)  # (N, 3, 3)
-    scale = 1.0 / np.maximum(np.linalg.norm(A, axis=(1, 2)), 1e-300)
+    # the three cross products in one (np.cross's own elementwise formula, in fewer calls)
+    A = cross(np.stack([h2, h3, h1], axis=1), np.stack([h3, h1, h2], axis=1))  # (N, 3, 3), C order
+    scale = 1.0 / np.maximum(np.sqrt(np.add.reduce(A * A, axis=(1, 2))), 1e-300)  # = 1 / Frobenius norm
     A = A * scale[:, None, None]
 
     # Work in centred, scaled pixels x = P xh (P = [[s, 0, cu], [0, s, cv], [0, 0, 1]]) so every term
     # is O(1): f is unchanged, the image gradient scales by s, and s_px = s * f / |gh|.
-    centre = pts.mean(axis=0) if M else np.zeros(2)
-    sc = max(float(np.sqrt(np.mean(np.sum((pts - centre) ** 2, axis=1)))) if M else 1.0, 1.0)
-    P = np.array([[sc, 0.0, centre[0]], [0.0, sc, centre[1]], [0.0, 0.0, 1.0]])
+    centre, sc, P, phi = _pixel_basis(pts)
     Q = np.diag([1.0, 1.0, -(float(radius_m) ** 2)])
     # Ch = P^T A^T Q A P (N, 3, 3), normalised (scale invariance again)
     AP = A @ P
     QAP = Q @ AP
     C = np.swapaxes(AP, 1, 2) @ QAP
-    cn = 1.0 / np.maximum(np.linalg.norm(C, axis=(1, 2)), 1e-300)
+    cn = 1.0 / np.maximum(np.sqrt(np.add.reduce(C * C, axis=(1, 2))), 1e-300)
     C = C * cn[:, None, None]
     if jacobian:
         # dh/dxi (N, 3, 6): d(R e_k) = -R [e_k]x omega, dt = R v
         e = np.eye(3)
         zero3 = np.zeros((N, 3, 3))
-        Dh1 = np.concatenate([-KR @ skew(e[0]), zero3], axis=2)
-        Dh2 = np.concatenate([-KR @ skew(e[1]), zero3], axis=2)
+        Dh1 = np.concatenate([-KR @ _skew_const(e[0]), zero3], axis=2)
+        Dh2 = np.concatenate([-KR @ _skew_const(e[1]), zero3], axis=2)
         Dh3 = np.concatenate([zero3, KR], axis=2)
         S1, S2, S3 = skew(h1), skew(h2), skew(h3)
         DA = np.stack([-S3 @ Dh2 + S2 @ Dh3, -S1 @ Dh3 + S3 @ Dh1, -S2 @ Dh1 + S1 @ Dh2], axis=1)  # (N, 3, 3, 6)
@@ -171,8 +193,6 @@ def conic_residual(
     # pixel basis phi(x) = [u^2, 2uv, v^2, 2u, 2v, 1], f = c . phi, g1 = (c11, c12, 2 c13) . phi[3:],
     # g2 = (c12, c22, 2 c23) . phi[3:]. The value and the six derivatives of C become ONE
     # (N * 7 * 3, 6) @ (6, M) product: f, g1, g2 and their derivatives for every pixel at once.
-    u, v = (pts[:, 0] - centre[0]) / sc, (pts[:, 1] - centre[1]) / sc
-    phi = np.stack([u * u, 2.0 * u * v, v * v, 2.0 * u, 2.0 * v, np.ones(M)], axis=0)  # (6, M)
     n7 = Call.shape[1]
     flat = np.concatenate([Call.reshape(N, n7, 9), np.zeros((N, n7, 1))], axis=2)  # index 9 reads 0
     coef = flat[:, :, _CONIC_COEF_INDEX] * _CONIC_COEF_MULT  # (N, n7, 3, 6)
@@ -183,7 +203,8 @@ def conic_residual(
     f2d = (f * sc / SAMPSON_MAX_PX) ** 2
     den = g2s + f2d
     ok = den > 0
-    iden = np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
+    # 0/0 := 0 where the denominator vanishes; a batch without such pixels (the usual case) skips the two selects
+    iden = 1.0 / den if ok.all() else np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
     r = sc * f * gn * iden
     if not jacobian:
         return r, None
@@ -191,9 +212,41 @@ def conic_residual(
     # d|g| = (g1 dg1 + g2 dg2) / |g| (0 where g = 0)
     c_f = sc * gn * (1.0 - 2.0 * f2d * iden) * iden
     c_g = sc * f * (1.0 - 2.0 * g2s * iden) * iden
-    q = np.where(gn > 0, c_g / np.where(gn > 0, gn, 1.0), 0.0)
-    J = out[:, 1:, 0] * c_f[:, None] + out[:, 1:, 1] * (g1 * q)[:, None] + out[:, 1:, 2] * (g2 * q)[:, None]
+    pos = gn > 0
+    q = c_g / gn if pos.all() else np.where(pos, c_g / np.where(pos, gn, 1.0), 0.0)
+    # J = out_f c_f + out_g1 (g1 q) + out_g2 (g2 q), summed in that order into one buffer (N, 6, M)
+    J = out[:, 1:, 0] * c_f[:, None]
+    tmp = out[:, 1:, 1] * (g1 * q)[:, None]
+    J += tmp
+    J += np.multiply(out[:, 1:, 2], (g2 * q)[:, None], out=tmp)
     return r, np.swapaxes(J, 1, 2)
+
+
+#: The last backbone's pixel basis (:func:`_pixel_basis`): its pixels' bytes and the derived arrays (read-only).
+_PIXEL_BASIS: list = [None]
+
+
+def _pixel_basis(pts: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """Centre ``(2,)``, scale ``sc``, ``P (3, 3)`` and ``phi (6, M)`` of :func:`conic_residual`'s pixels ``pts (M, 2)``.
+
+    ``x = P xh`` centres and scales the pixels; ``phi = [u^2, 2uv, v^2, 2u, 2v, 1]`` of the centred, scaled
+    ones. A frame's pixels are evaluated many times per frame (every transport iteration, trial and polish):
+    the last set's result is kept, keyed on the pixels' exact bytes (so it is the same arrays, bitwise).
+    """
+    key = pts.tobytes() + bytes(str(pts.shape), "ascii")
+    hit = _PIXEL_BASIS[0]
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    M = pts.shape[0]
+    centre = pts.mean(axis=0) if M else np.zeros(2)
+    sc = max(float(np.sqrt(np.mean(np.sum((pts - centre) ** 2, axis=1)))) if M else 1.0, 1.0)
+    P = np.array([[sc, 0.0, centre[0]], [0.0, sc, centre[1]], [0.0, 0.0, 1.0]])
+    u, v = (pts[:, 0] - centre[0]) / sc, (pts[:, 1] - centre[1]) / sc
+    phi = np.stack([u * u, 2.0 * u * v, v * v, 2.0 * u, 2.0 * v, np.ones(M)], axis=0)  # (6, M)
+    for a in (centre, P, phi):
+        a.flags.writeable = False
+    _PIXEL_BASIS[0] = (key, (centre, sc, P, phi))
+    return centre, sc, P, phi
 
 
 def grasp_position_residual(
@@ -220,8 +273,8 @@ def grasp_perpendicular_residual(
     zg = np.asarray(cam_z_grasper, dtype=float)
     zg = zg / np.linalg.norm(zg, axis=-1, keepdims=True)
     R = T[:, :3, :3]
-    r = np.sum((R @ tg) * zg, axis=-1)
-    Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ skew(tg))
+    r = ((R @ tg) * zg).sum(axis=-1)
+    Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ _skew_const(tg))
     J = np.concatenate([Jw, np.zeros((T.shape[0], 3))], axis=1)
     return r[:, None], J[:, None, :]
 

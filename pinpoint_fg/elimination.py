@@ -98,13 +98,13 @@ def whiten_prior(r: np.ndarray, J: np.ndarray, W: np.ndarray) -> tuple[np.ndarra
     """
     e = np.einsum("nij,nj->ni", W, r)
     Jw = W @ J
-    return 0.5 * np.sum(e * e, axis=1), np.einsum("nmi,nm->ni", Jw, e), np.swapaxes(Jw, 1, 2) @ Jw
+    return 0.5 * (e * e).sum(axis=1), np.einsum("nmi,nm->ni", Jw, e), np.swapaxes(Jw, 1, 2) @ Jw
 
 
 def motion_value(r: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Value (N,) of the motion term ``1/2 |W r|^2`` alone (no Jacobians)."""
     e = r @ W.T
-    return 0.5 * np.sum(e * e, axis=1)
+    return 0.5 * (e * e).sum(axis=1)
 
 
 def whiten_motion(r: np.ndarray, Jp: np.ndarray, Jc: np.ndarray, W: np.ndarray
@@ -117,7 +117,7 @@ def whiten_motion(r: np.ndarray, Jp: np.ndarray, Jc: np.ndarray, W: np.ndarray
     e = r @ W.T
     Jp, Jc = W @ Jp, W @ Jc
     JpT, JcT = np.swapaxes(Jp, 1, 2), np.swapaxes(Jc, 1, 2)
-    return (0.5 * np.sum(e * e, axis=1), np.einsum("nij,nj->ni", JpT, e), np.einsum("nij,nj->ni", JcT, e),
+    return (0.5 * (e * e).sum(axis=1), np.einsum("nij,nj->ni", JpT, e), np.einsum("nij,nj->ni", JcT, e),
             JpT @ Jp, JpT @ Jc, JcT @ Jc)
 
 
@@ -133,7 +133,7 @@ def chain_motion_terms(poses: np.ndarray, deltas: list[np.ndarray], delta_W: lis
     e = (Wm @ r.reshape(L - 1, N, 6, 1))[..., 0]
     Jp, Jc = Wm @ Jp.reshape(L - 1, N, 6, 6), Wm @ Jc.reshape(L - 1, N, 6, 6)
     JpT, JcT = np.swapaxes(Jp, -1, -2), np.swapaxes(Jc, -1, -2)
-    return (0.5 * np.sum(e * e, axis=-1), (JpT @ e[..., None])[..., 0], (JcT @ e[..., None])[..., 0],
+    return (0.5 * (e * e).sum(axis=-1), (JpT @ e[..., None])[..., 0], (JcT @ e[..., None])[..., 0],
             JpT @ Jp, JpT @ Jc, JcT @ Jc)
 
 
@@ -174,7 +174,7 @@ def eliminate_onto_newest(window_value: np.ndarray, gs: list[np.ndarray], Hs: li
         Hinv = head_inv[j] if j < k else inv_psd(H_run)
         BT = np.swapaxes(Bs[j], 1, 2)
         Hig = np.einsum("nij,nj->ni", Hinv, g_run)
-        c = c - 0.5 * np.sum(g_run * Hig, axis=1)
+        c = c - 0.5 * (g_run * Hig).sum(axis=1)
         cond_inv.append(Hinv)
         cond_g.append(g_run)
         g_run = gs[j + 1] - np.einsum("nij,nj->ni", BT, Hig)
@@ -237,8 +237,8 @@ def marginal_prior(v0: np.ndarray, g0: np.ndarray, H0: np.ndarray,
     Hn = floor_information(C - BT @ Ainv @ B)
     gn = g1 - np.einsum("nij,nj->ni", BT @ Ainv, gA)
     d_star = -np.linalg.solve(Hn, gn[..., None])[..., 0]
-    c = v0 + mv - 0.5 * np.sum(gA * np.einsum("nij,nj->ni", Ainv, gA), axis=1)
-    c = c - 0.5 * np.sum(gn * -d_star, axis=1)
+    c = v0 + mv - 0.5 * (gA * np.einsum("nij,nj->ni", Ainv, gA)).sum(axis=1)
+    c = c - 0.5 * (gn * -d_star).sum(axis=1)
     # Laplace: integrating the removed pose out multiplies by det(A)^-1/2 (A its conditional information), so
     # the cost gains 1/2 log det A: the evidence is then each hypothesis's marginal likelihood, not its best path
     c = c + 0.5 * np.linalg.slogdet(A)[1]

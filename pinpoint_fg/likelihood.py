@@ -190,12 +190,18 @@ class FrameLikelihood:
         return res.grasp_perpendicular_residual(T, self._tgrasp, data)
 
     def _whiten(self, name: str, r: np.ndarray, J: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Whitened residual ``W (r - mean)`` and Jacobian ``W J`` of term ``name`` (J None: skipped)."""
+        """Whitened residual ``W (r - mean)`` and Jacobian ``W J`` of term ``name`` (J None: skipped).
+
+        ``J`` is the caller's fresh array from :meth:`_raw`, consumed: the conic's (N, M, 6), the largest array
+        of a frame, is scaled in place (the same products as a new array; one allocation fewer).
+        """
         n = self._noise[name]
         W = self._W[name]
         if name == "conic":
             # one scalar noise per pixel: W and mean are 1x1
-            return (r - n.mean[0]) * W[0, 0], (None if J is None else J * W[0, 0])
+            if J is not None:
+                J *= W[0, 0]
+            return (r - n.mean[0]) * W[0, 0], J
         return (r - n.mean) @ W.T, (None if J is None else W @ J)
 
     def _blocks(self, T: np.ndarray, jacobian: bool) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
@@ -208,16 +214,22 @@ class FrameLikelihood:
 
     def _robust(self, name: str, e: np.ndarray, J: np.ndarray | None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Loss ``(N,)`` of one whitened block and its IRLS-weighted ``sqrt(w) e``, ``sqrt(w) J`` (see :meth:`irls`)."""
+        """Loss ``(N,)`` of one whitened block and its IRLS-weighted ``sqrt(w) e``, ``sqrt(w) J`` (see :meth:`irls`).
+
+        ``J`` is :meth:`_whiten`'s fresh array, consumed: the conic's is reweighted in place.
+        """
         rl = self._loss[name]
         if not rl.active:
-            return 0.5 * np.sum(e * e, axis=1), e, J
+            return 0.5 * (e * e).sum(axis=1), e, J
         # a conic block is one pixel; the others are the whole term
-        d = np.abs(e) if name == "conic" else np.linalg.norm(e, axis=1, keepdims=True)
-        loss = np.sum(rl.loss(d), axis=1)
+        d = np.abs(e) if name == "conic" else np.sqrt(np.add.reduce(e * e, axis=1, keepdims=True))  # = norm
+        loss = rl.loss(d).sum(axis=1)
         sw = np.sqrt(rl.weight(d))
         if name != "conic":
             sw = np.broadcast_to(sw, e.shape)
+        elif J is not None:
+            J *= sw[:, :, None]
+            return loss, e * sw, J
         return loss, e * sw, (None if J is None else J * sw[:, :, None])
 
     def whitened(self, cam_T_needle: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:

@@ -176,9 +176,17 @@ class ResidualNoise:
 
     @property
     def sqrt_information(self) -> np.ndarray:
-        """``W`` with ``W^T W = cov^-1`` (upper triangular), so the whitened residual is ``W (r - mean)``."""
-        L = np.linalg.cholesky(self.cov)
-        return np.linalg.inv(L)
+        """``W`` with ``W^T W = cov^-1`` (upper triangular), so the whitened residual is ``W (r - mean)``.
+
+        Computed once per covariance value (every frame's likelihood asks for it; the result is a copy of the
+        kept one, which is recomputed if ``cov`` is ever changed in place).
+        """
+        key = self.cov.tobytes()
+        kept = self.__dict__.get("_sqrt_information")
+        if kept is None or kept[0] != key:
+            kept = (key, np.linalg.inv(np.linalg.cholesky(self.cov)))
+            object.__setattr__(self, "_sqrt_information", kept)
+        return kept[1].copy()
 
     def gtsam_model(self):  # noqa: ANN201 - gtsam type
         """The matching zero-mean gtsam noise model (Diagonal when the covariance is diagonal)."""

@@ -239,13 +239,19 @@ class Window:
             Hs.append(H)
         return vals, gs, Hs
 
-    def move_newest(self, step: np.ndarray, lin: Linearization) -> None:
+    def move_newest(self, step: np.ndarray, lin: Linearization, newest: np.ndarray | None = None) -> None:
         """Retract the newest poses by ``step (N, 6)`` and the older ones by back-substitution.
 
         ``d_j = -H_jj^-1 (g_j + H_{j,j+1} d_{j+1})`` for ``j = L-2 .. 0``: the older poses move to
         their Gauss-Newton conditional optimum given the newest (the smoothing step).
+
+        ``newest``: the caller's ``newest @ se3_exp(step)`` when it has it already (a safeguard's accepted
+        trial; the same product, bitwise): with ``L = 1`` it is taken as is instead of being recomputed.
         """
         assert self.poses is not None
+        if newest is not None and self.size == 1:
+            self.poses = np.asarray(newest, dtype=float)[None].copy()
+            return
         d = np.empty(self.poses.shape[:2] + (6,))
         d[-1] = step
         for j in range(self.size - 2, -1, -1):

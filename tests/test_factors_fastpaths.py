@@ -7,12 +7,12 @@ import pytest
 
 from factors import residuals as res
 from factors.geometry import NeedleModel, PinholeCamera
-from factors.lie import se3_exp
+from factors.lie import cross, se3_exp
 from factors.robust import RobustLoss
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, gauss_newton_frames
-from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.stein import SteinConfig, floor_hessians, stein_step
+from pinpoint_fg.stein import SteinConfig, _median, floor_hessians, quantile_rows, stein_step
 from tests.poses import KINDS, sample_poses
 from tests.reference_kernels import conic_residual_reference, floor_hessians_reference, stein_step_reference
 
@@ -174,3 +174,103 @@ def test_gauss_newton_frames_equals_per_frame_evaluation() -> None:
         memo = f.gauss_newton(T)  # the batch filled every frame's memo
         for a, b in zip(memo, g, strict=True):
             assert np.array_equal(a, b)
+
+
+def test_quantile_rows_is_bitwise_np_quantile() -> None:
+    """The Stein transport's stopping quantile: numpy's order statistics and interpolation, every bit."""
+    rng = np.random.default_rng(21)
+    for n in (1, 2, 3, 7, 20, 21, 50, 51, 1440):
+        for q in (0.0, 0.25, 0.5, 0.95, 1.0):
+            for case in range(6):
+                x = rng.exponential(size=(2, n)) * 10.0 ** rng.uniform(-6, 0)
+                if case == 1:
+                    x[1] = 0.0
+                elif case == 2:
+                    x = np.round(x * 1e5)  # ties
+                elif case == 3:
+                    x[0, n // 2] = np.nan
+                with np.errstate(invalid="ignore"):
+                    ref = np.quantile(x, q, axis=1)
+                assert np.array_equal(quantile_rows(x, q), ref, equal_nan=True), (n, q, case)
+
+
+def test_median_is_bitwise_np_median() -> None:
+    """The bandwidth's median (odd and even counts, ties, NaN) equals ``np.median`` exactly."""
+    rng = np.random.default_rng(22)
+    for n in (1, 2, 3, 4, 190, 1225, 1226):
+        for case in range(4):
+            v = rng.exponential(size=n) * 10.0 ** rng.uniform(-8, 3)
+            if case == 1:
+                v = np.round(v)
+            elif case == 2:
+                v[n // 2] = np.nan
+            ref = float(np.median(v))
+            got = _median(v)
+            assert (np.isnan(ref) and np.isnan(got)) or got == ref, (n, case)
+
+
+def test_cross_is_bitwise_np_cross() -> None:
+    """``factors.lie.cross`` (used by the conic kernel and the SE(3) log) is ``np.cross``'s elementwise formula."""
+    rng = np.random.default_rng(23)
+    a = rng.normal(size=(50, 3, 3)) * 10.0 ** rng.uniform(-9, 3, size=(50, 3, 1))
+    b = rng.normal(size=(50, 3, 3)) * 10.0 ** rng.uniform(-9, 3, size=(50, 3, 1))
+    got = cross(a, b)
+    assert np.array_equal(got, np.cross(a, b)) and got.flags["C_CONTIGUOUS"]
+    assert np.array_equal(cross(a[0, 0], b[:, 1]), np.cross(a[0, 0], b[:, 1]))  # broadcast
+
+
+def test_conic_pixel_basis_memo_is_bitwise_a_fresh_evaluation() -> None:
+    """Alternating pixel sets (the memo keeps the last one) gives every evaluation its own pixels' result exactly."""
+    rng = np.random.default_rng(24)
+    T = sample_poses("uniform", 20, rng)
+    sets = [rng.uniform(0, 1080, size=(60, 2)), rng.uniform(0, 1080, size=(60, 2)), rng.uniform(0, 1080, size=(30, 2))]
+    sets.append(sets[2].reshape(60, 1)[:, 0].reshape(30, 2)[::-1].copy())  # the same values in another order
+    first = [res.conic_residual(T, CAM.K, NEEDLE.radius_m, p) for p in sets]
+    for p, (r0, J0) in zip(sets[::-1] + sets, first[::-1] + first, strict=True):
+        r, J = res.conic_residual(T, CAM.K, NEEDLE.radius_m, p.copy())
+        assert np.array_equal(r, r0) and np.array_equal(J, J0)
+    # and against the reference kernel (to round-off: it sums in another order)
+    r_ref, J_ref = conic_residual_reference(T, CAM.K, NEEDLE.radius_m, sets[0])
+    np.testing.assert_allclose(first[0][0], r_ref, rtol=1e-9, atol=1e-9 * np.abs(r_ref).max())
+    np.testing.assert_allclose(first[0][1], J_ref, rtol=1e-9, atol=1e-9 * np.abs(J_ref).max())
+
+
+def test_floor_hessians_without_unusable_rows_equals_reference() -> None:
+    """The branch that skips the fallback replacement (every row finite and informative) is the same floor."""
+    rng = np.random.default_rng(25)
+    A = rng.normal(size=(40, 6, 6))
+    H = A @ np.swapaxes(A, 1, 2)
+    H[:10] -= 3.0 * np.eye(6)  # indefinite, still informative
+    fb = np.arange(1.0, 7.0)
+    for a, b in zip(floor_hessians(H, 1e-2, fb), floor_hessians_reference(H, 1e-2, fb), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+
+
+def test_likelihood_conic_whitening_in_place_equals_the_products() -> None:
+    """The conic's Jacobian whitened and IRLS-reweighted in place: ``J W sqrt(w)``, as new arrays would give."""
+    rng = np.random.default_rng(26)
+    lik, poses = _frame(rng)
+    lik = FrameLikelihood(lik.observation, MeasurementModel(CAM, NEEDLE, NoiseConfig().with_robust(
+        {"conic": RobustLoss("huber", 1.345)})))
+    pts = lik._data["conic"]
+    r, J = res.conic_residual(poses, CAM.K, NEEDLE.radius_m, pts)
+    n, W = lik._noise["conic"], lik._W["conic"][0, 0]
+    e, Jw = (r - n.mean[0]) * W, J * W
+    d = np.abs(e)
+    sw = np.sqrt(lik._loss["conic"].weight(d))
+    loss, e_irls, J_irls = lik._robust("conic", *lik._whiten("conic", *res.conic_residual(poses, CAM.K,
+                                                                                         NEEDLE.radius_m, pts)))
+    assert np.array_equal(loss, lik._loss["conic"].loss(d).sum(axis=1))
+    assert np.array_equal(e_irls, e * sw) and np.array_equal(J_irls, Jw * sw[:, :, None])
+
+
+def test_sqrt_information_is_kept_per_covariance_value() -> None:
+    """The whitening: computed once per covariance value, handed out as copies, recomputed after an in-place change."""
+    n = ResidualNoise(np.zeros(2), np.array([[4.0, 0.5], [0.5, 1.0]]))
+    ref = np.linalg.inv(np.linalg.cholesky(n.cov))
+    a, b = n.sqrt_information, n.sqrt_information
+    assert np.array_equal(a, ref) and np.array_equal(b, ref) and a is not b
+    a[:] = 0.0  # a caller's copy: the kept one is untouched
+    assert np.array_equal(n.sqrt_information, ref)
+    n.cov[:] = 4.0 * n.cov
+    assert np.array_equal(n.sqrt_information, np.linalg.inv(np.linalg.cholesky(n.cov)))

@@ -76,3 +76,37 @@ def test_se3_log_equals_reference(kind: str) -> None:
     xi = _tangents("uniform", 300, rng)
     np.testing.assert_allclose(lie.se3_log(lie.se3_exp(xi)), xi, rtol=0, atol=1e-9)
 
+
+
+_BRANCHED = {
+    "so3_exp": lambda x: lie.so3_exp(x[..., :3]),
+    "so3_right_jacobian": lambda x: lie.so3_right_jacobian(x[..., :3]),
+    "so3_right_jacobian_inv": lambda x: lie.so3_right_jacobian_inv(x[..., :3]),
+    "q_left": lambda x: lie._q_left(x[..., :3], x[..., 3:]),
+    "se3_exp": lie.se3_exp,
+    "se3_log": lambda x: lie.se3_log(se3_exp_reference(x)),
+    "so3_log": lambda x: lie.so3_log(se3_exp_reference(x)[..., :3, :3]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_BRANCHED))
+@pytest.mark.parametrize("kind", ("near_identity_all", "uniform", "near_pi", "zero"))
+def test_series_branch_skipping_is_bitwise_np_where(name: str, kind: str) -> None:
+    """A batch whose angles all take one branch (Taylor or closed form) skips the other: its rows are bitwise
+    those of the same tangents inside a mixed batch (``np.where`` over both branches), single vectors too."""
+    rng = np.random.default_rng(34)
+    if kind == "near_identity_all":  # every angle below both Taylor thresholds (1e-4 and Q's 1e-3)
+        axis = rng.normal(size=(60, 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        xi = np.concatenate([axis * 10 ** rng.uniform(-12, -4.5, size=(60, 1)), rng.normal(size=(60, 3)) * 0.05], 1)
+    else:
+        xi = _tangents(kind, 60, rng)
+        xi = xi[np.linalg.norm(xi[:, :3], axis=1) > 2e-3] if kind != "zero" else xi
+    other = _tangents("uniform" if kind in ("near_identity_all", "zero") else "zero", 5, rng)
+    other[:, :3] *= 1.0 if kind in ("near_identity_all", "zero") else 0.0
+    f = _BRANCHED[name]
+    alone = f(xi)
+    mixed = f(np.concatenate([xi, other]))[: xi.shape[0]]
+    assert np.array_equal(alone, mixed)
+    for i in (0, 1):
+        assert np.array_equal(f(xi[i]), alone[i])

@@ -250,3 +250,17 @@ def test_share_books_copies_prior_and_evidence_and_keeps_the_memo_equal_to_a_fre
     fresh = _fresh_copy(w)._unary(0, w.poses[0])
     for a, b in zip(memo, fresh, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+
+
+def test_move_newest_with_the_accepted_trial_is_bitwise_the_retraction() -> None:
+    """L = 1: handing ``move_newest`` the safeguard's ``T @ Exp(step)`` gives the poses it would compute itself."""
+    rng = np.random.default_rng(41)
+    w, _ = _window(1, 12, rng, 1)
+    step = rng.normal(size=(12, 6)) * np.r_[[0.02] * 3, [5e-4] * 3]
+    lin = w.linearize()
+    trial = w.newest @ se3_exp(step)
+    ref = w.poses @ se3_exp(step[None])
+    w.move_newest(step, lin, newest=trial)
+    assert np.array_equal(w.poses, ref) and w.poses.shape == (1, 12, 4, 4)
+    trial[:] = 0.0  # the window holds its own copy
+    assert np.array_equal(w.poses, ref)

@@ -208,10 +208,13 @@ def polish(sub: Window, lin: Linearization, iters: int, decrement: float = 1e-3)
         A = lin.hess + lam[:, None, None] * (diag[:, :, None] * np.eye(6))
         step = -np.linalg.solve(A, lin.grad[..., None])[..., 0]
         step = np.where(active[:, None] & np.isfinite(step), step, 0.0)
-        trial = sub.newest_value(sub.newest @ se3_exp(step), lin)
+        T_trial = sub.newest @ se3_exp(step)
+        trial = sub.newest_value(T_trial, lin)
         better = active & np.isfinite(trial) & (trial < lin.value)
         if better.any():
-            sub.move_newest(np.where(better[:, None], step, 0.0), lin)
+            move = np.where(better[:, None], step, 0.0)
+            # every step kept (the usual case): the moved newest poses are the trial's, bit for bit
+            sub.move_newest(move, lin, newest=T_trial if move.tobytes() == step.tobytes() else None)
             lin = sub.linearize()
         lam = np.where(better, lam * 0.3, lam * 10.0)
         rejected = np.where(better, 0, rejected + active)

@@ -19,8 +19,8 @@ cells = [
         "work = Path(tempfile.mkdtemp(prefix='pinpoint-walkthrough-'))\n"
         "work"
     ),
-    nbf.v4.new_markdown_cell("## 1. Simulate a run\nThe rotation scenario turns the needle out of plane inside the grasp, "
-                             "through near edge-on views where the two circle poses are hardest to tell apart."),
+    nbf.v4.new_markdown_cell("## 1. Simulate a run\nThe rotation scenario turns the needle out of plane inside the "
+                             "grasp, through near edge-on views where the two circle poses are hardest to tell apart."),
     nbf.v4.new_code_cell(
         "from pinpoint_fg.sim.scenarios import simulate\n"
         "from pinpoint_fg.io.recording import read_recording, summarize_recording\n"
@@ -28,8 +28,8 @@ cells = [
         "recording = read_recording(run)\n"
         "print(summarize_recording(recording))"
     ),
-    nbf.v4.new_markdown_cell("## 2. Track it\n`track_recording` writes the v1 result format frame by frame; "
-                             "the Python API (`make_tracker(...).step(observation)`) does the same one frame at a time."),
+    nbf.v4.new_markdown_cell("## 2. Track it\n`track_recording` writes the v1 result format frame by frame; the "
+                             "Python API (`make_tracker(...).step(observation)`) does the same one frame at a time."),
     nbf.v4.new_code_cell(
         "from pinpoint_fg.track import track_recording\n"
         "from pinpoint_fg.io.result import read_result\n"
@@ -37,8 +37,8 @@ cells = [
         "map_ = read_result(track_recording(run, 'map', work / 'map', progress=False))\n"
         "print('svn frames:', len(svn.frame), ' median latency %.1f ms' % np.median(svn.latency_ms))"
     ),
-    nbf.v4.new_markdown_cell("## 3. A bimodal frame\nThe particle set of a frame the tracker judged bimodal, in its two "
-                             "principal tangent directions, with the two GMM components and the truth."),
+    nbf.v4.new_markdown_cell("## 3. A bimodal frame\nThe particle set of a frame the tracker judged bimodal, in its "
+                             "two principal tangent directions, with the two GMM components and the truth."),
     nbf.v4.new_code_cell(
         "from pinpoint_fg.posterior.bimodality import assess_bimodality, principal_plane, tangent_at_map\n"
         "import matplotlib\n"

@@ -164,6 +164,17 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return w
 
 
+def _jr_inv_coefficient(w: np.ndarray) -> np.ndarray:
+    """``1/theta^2 - cot(theta/2) / (2 theta)`` of :func:`so3_right_jacobian_inv` (Taylor series near 0)."""
+    th2 = (w * w).sum(axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    br = _branch(small)
+    ths = _safe_angle(br, small, th)
+    return _pick(br, small, lambda: 1.0 / 12.0 + th2 / 720.0,
+                 lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+
+
 def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
     """Inverse right Jacobian of SO(3): ``d Log(R Exp(d)) / d d`` at ``d = 0`` for ``R = Exp(w)``.
 
@@ -171,13 +182,7 @@ def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
     is finite at theta = pi (where cot(pi/2) = 0).
     """
     w = np.asarray(w, dtype=float)
-    th2 = (w * w).sum(axis=-1)
-    th = np.sqrt(th2)
-    small = th < _SMALL
-    br = _branch(small)
-    ths = _safe_angle(br, small, th)
-    c = _pick(br, small, lambda: 1.0 / 12.0 + th2 / 720.0,
-              lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    c = _jr_inv_coefficient(w)
     W = skew(w)
     return np.eye(3) + 0.5 * W + c[..., None, None] * (W @ W)
 
@@ -262,13 +267,7 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]
     w = so3_log(R)
-    th2 = (w * w).sum(axis=-1)
-    th = np.sqrt(th2)
-    small = th < _SMALL
-    br = _branch(small)
-    ths = _safe_angle(br, small, th)
-    c = _pick(br, small, lambda: 1.0 / 12.0 + th2 / 720.0,
-              lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
+    c = _jr_inv_coefficient(w)
     u = (T[..., None, :3, 3] @ R)[..., 0, :]  # R^T t
     wu = cross(w, u)
     v = u + 0.5 * wu + c[..., None] * cross(w, wu)

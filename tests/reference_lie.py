@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factors.lie import rotation_to_quat_wxyz, so3_exp, so3_right_jacobian, so3_right_jacobian_inv
+from factors.lie import _so3_log_quat, so3_exp, so3_right_jacobian, so3_right_jacobian_inv
 
 
 def se3_exp_reference(xi: np.ndarray) -> np.ndarray:
@@ -26,14 +26,9 @@ def se3_exp_reference(xi: np.ndarray) -> np.ndarray:
 
 
 def so3_log_reference(R: np.ndarray) -> np.ndarray:
-    """``Log`` of rotations through the quaternion for every angle (the form before the trace/skew fast path)."""
-    q = rotation_to_quat_wxyz(R)
-    qv = q[..., 1:]
-    n = np.linalg.norm(qv, axis=-1)
-    th = 2.0 * np.arctan2(n, q[..., 0])
-    small = n < 1e-12
-    scale = np.where(small, 2.0 / np.maximum(q[..., 0], 1e-300), th / np.where(small, 1.0, n))
-    return qv * scale[..., None]
+    """``Log`` of rotations through the quaternion for every angle (the form before the trace/skew fast path;
+    ``so3_log`` itself uses it only beyond 143 deg)."""
+    return _so3_log_quat(R)
 
 
 def se3_log_reference(T: np.ndarray) -> np.ndarray:

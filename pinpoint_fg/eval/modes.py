@@ -97,10 +97,18 @@ def near_truth(T: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
     return (e.trans_m <= TRUTH_KEPT_TRANS_M) & (e.rot_rad <= TRUTH_KEPT_ROT_RAD)
 
 
-def truth_kept(res: Result, modes: ResultModes, T_gt: np.ndarray, has_gt: np.ndarray) -> dict[str, float]:
-    """``truth_kept_modes_share`` and ``truth_kept_particles_share`` (NaN when nothing to judge)."""
-    sel = has_gt & modes.has_modes
-    kept = [bool(np.any(near_truth(modes.peaks[i], T_gt[i]))) for i in np.nonzero(sel)[0]]
+def peaks_near_truth(modes: ResultModes, T_gt: np.ndarray, has_gt: np.ndarray) -> dict[int, np.ndarray]:
+    """Per frame index with ground truth and modes: (M_f,) bool, which mode peaks are near the truth."""
+    return {int(i): near_truth(modes.peaks[i], T_gt[i][None]) for i in np.nonzero(has_gt & modes.has_modes)[0]}
+
+
+def truth_kept(res: Result, modes: ResultModes, T_gt: np.ndarray, has_gt: np.ndarray,
+               near: dict[int, np.ndarray] | None = None) -> dict[str, float]:
+    """``truth_kept_modes_share`` and ``truth_kept_particles_share`` (NaN when nothing to judge).
+
+    ``near``: :func:`peaks_near_truth` when the caller has it already."""
+    near = peaks_near_truth(modes, T_gt, has_gt) if near is None else near
+    kept = [bool(m.any()) for m in near.values()]
     out = {"truth_kept_modes_share": float(np.mean(kept)) if kept else float("nan")}
     P = res.particles
     if P is None:
@@ -116,22 +124,23 @@ def truth_kept(res: Result, modes: ResultModes, T_gt: np.ndarray, has_gt: np.nda
     return out
 
 
-def mode_weight_calibration(modes: ResultModes, T_gt: np.ndarray, has_gt: np.ndarray) -> dict[str, float | int]:
+def mode_weight_calibration(modes: ResultModes, T_gt: np.ndarray, has_gt: np.ndarray,
+                            near: dict[int, np.ndarray] | None = None) -> dict[str, float | int]:
     """``minor_weight_mean``, ``truth_minor_share`` and their frame count ``truth_mode_frames`` (module docstring).
 
     ``T_gt`` (F, 4, 4) and ``has_gt`` (F,) per frame of the result; the dominant mode is the heaviest
-    (the first on ties). NaN when no mode keeps the truth on any frame.
+    (the first on ties). NaN when no mode keeps the truth on any frame. ``near``: :func:`peaks_near_truth`
+    when the caller has it already.
     """
+    near = peaks_near_truth(modes, T_gt, has_gt) if near is None else near
     minor_w, in_minor = [], []
-    for i in np.nonzero(has_gt & modes.has_modes)[0]:
-        peaks = modes.peaks[i]
-        w = modes.weights[i, : peaks.shape[0]]
-        near = near_truth(peaks, T_gt[i][None])
-        if not near.any():
+    for i, is_near in near.items():
+        if not is_near.any():
             continue
+        w = modes.weights[i, : is_near.shape[0]]
         dom = int(np.argmax(w))
         minor_w.append(float(np.sum(w) - w[dom]) / float(np.sum(w)))
-        in_minor.append(not bool(near[dom]))
+        in_minor.append(not bool(is_near[dom]))
     if not minor_w:
         return {"minor_weight_mean": float("nan"), "truth_minor_share": float("nan"), "truth_mode_frames": 0}
     return {"minor_weight_mean": float(np.mean(minor_w)), "truth_minor_share": float(np.mean(in_minor)),

@@ -50,7 +50,14 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
-from pinpoint_fg.eval.modes import ResultModes, mode_weight_calibration, modes_of_result, reference_rates, truth_kept
+from pinpoint_fg.eval.modes import (
+    ResultModes,
+    mode_weight_calibration,
+    modes_of_result,
+    peaks_near_truth,
+    reference_rates,
+    truth_kept,
+)
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
@@ -317,8 +324,9 @@ def _evaluate_one(
     modes = modes if modes is not None else modes_of_result(res)
     hm = modes.has_modes
     row["bimodal_modes_share"] = float(np.mean(modes.bimodal[hm])) if hm.any() else float("nan")
-    row.update(truth_kept(res, modes, T_gt, has_gt))
-    row.update(mode_weight_calibration(modes, T_gt, has_gt))
+    near = peaks_near_truth(modes, T_gt, has_gt)
+    row.update(truth_kept(res, modes, T_gt, has_gt, near))
+    row.update(mode_weight_calibration(modes, T_gt, has_gt, near))
     if reference is not None:
         row["reference"] = reference[0]
         row.update(reference_rates(res.frame, bimodal, assessed, modes.bimodal, hm, reference[1], reference[2]))

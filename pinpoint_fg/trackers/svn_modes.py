@@ -104,7 +104,6 @@ class ModeSettings:
     frame's marginalisation (:func:`book_sources`; False: each hypothesis keeps its own)."""
     map_from_prediction: bool = True
     """The previous MAP hypothesis at its motion prediction is one more start of its mode's polish (:func:`settle`)."""
-    """Also share them again right after the next frame's marginalisation (EXPERIMENT)."""
 
 
 @dataclass(frozen=True)
@@ -332,11 +331,9 @@ def book_sources(found: Basins, reps: np.ndarray, index: np.ndarray) -> tuple[np
 
 def _best_per_row(rows: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Indices into ``rows`` keeping, for each distinct row, the entry with the highest ``z`` (order kept)."""
-    score = np.nan_to_num(z, nan=-np.inf)
-    keep = [i for i in range(rows.size)
-            if not any(rows[j] == rows[i] and (score[j] > score[i] or (score[j] == score[i] and j < i))
-                       for j in range(rows.size) if j != i)]
-    return np.asarray(keep, dtype=int)
+    order = np.lexsort((np.arange(rows.size), -np.nan_to_num(z, nan=-np.inf)))  # best first, ties: earliest
+    _, first = np.unique(rows[order], return_index=True)
+    return np.sort(order[first])
 
 
 @dataclass(frozen=True)

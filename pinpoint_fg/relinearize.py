@@ -117,13 +117,44 @@ class ChainAnchor:
             G[1:] += m_gc
             Hd[:-1] += m_Hpp
             Hd[1:] += m_Hcc
-        # the Schur sweep's informations depend on the anchored blocks alone: kept with them
+        Hinv, H_last = ChainAnchor._sweep(Hd, Bo)
+        return {"A": A, "Fv": Fv, "Fg": Fg, "FH": FH, "V": V, "G": G, "Hd": Hd, "Bo": np.array(Bo),
+                "Hinv": Hinv, "H_last": H_last, "valid": np.ones(n, dtype=bool)}
+
+    @staticmethod
+    def _sweep(Hd: np.ndarray, Bo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Schur sweep's informations, which depend on the anchored blocks alone (kept with them):
+        ``H_jj^-1`` of poses ``0 .. K-2`` (K-1, n, 6, 6) and pose K-1's information after their elimination."""
+        K, n = Hd.shape[:2]
         Hinv, H_run = [], Hd[0]
         for j in range(K - 1):
             Hinv.append(inv_psd(H_run))
             H_run = Hd[j + 1] - np.swapaxes(Bo[j], -1, -2) @ Hinv[-1] @ Bo[j]
-        return {"A": A, "Fv": Fv, "Fg": Fg, "FH": FH, "V": V, "G": G, "Hd": Hd, "Bo": np.array(Bo),
-                "Hinv": np.array(Hinv).reshape(K - 1, n, 6, 6), "H_last": H_run, "valid": np.ones(n, dtype=bool)}
+        return np.array(Hinv).reshape(K - 1, n, 6, 6), H_run
+
+    def replace_prior(self, frames: list[FrameLikelihood], index: np.ndarray, old: tuple[np.ndarray, np.ndarray],
+                      new: tuple[np.ndarray, np.ndarray]) -> None:
+        """Rows ``index`` change their window prior from ``old`` to ``new`` (each (mean (n, 4, 4), whitening
+        (n, 6, 6))): the prior's terms are swapped in the model at the rows' anchors and their sweep redone.
+
+        ``frames`` are the window's older frames. The model is then the one :meth:`model` would evaluate
+        afresh at the same anchors, to round-off (tested): the older frames' and motion terms do not depend
+        on the prior, so their costly re-evaluation (an :meth:`invalidate`) is not needed. A model of other
+        frames (the window was pushed since it was last used) is left alone: sliding it assembles the prior
+        afresh.
+        """
+        if self.key is None or self.key != tuple(id(f) for f in frames) or index.size == 0:
+            return
+        a = self.arrays
+        A0 = a["A"][0, index]
+        v_o, g_o, H_o = whiten_prior(*res.pose_prior_residual(A0, old[0]), old[1])
+        v_n, g_n, H_n = whiten_prior(*res.pose_prior_residual(A0, new[0]), new[1])
+        a["V"][index] += v_n - v_o
+        a["G"][0, index] += g_n - g_o
+        a["Hd"][0, index] += H_n - H_o
+        Hinv, H_last = self._sweep(a["Hd"][:, index], a["Bo"][:, index])
+        a["Hinv"][:, index] = Hinv
+        a["H_last"][index] = H_last
 
     def _evaluate(self, frames: list[FrameLikelihood], poses: np.ndarray, prior: tuple[np.ndarray, np.ndarray],
                   deltas: list[np.ndarray], delta_W: list[np.ndarray]) -> dict[str, np.ndarray]:

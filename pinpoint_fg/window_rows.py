@@ -125,11 +125,14 @@ def share_books(window: Window, index: np.ndarray | list[int], source_index: np.
         return
     valid = window._memo.holds(window._prior_key(window.poses[0]))
     T0 = window.poses[0, index]
-    old = whiten_prior(*res.pose_prior_residual(T0, window.prior_mean[index]), window.prior_W[index])
+    old_prior = (window.prior_mean[index], window.prior_W[index])
+    old = whiten_prior(*res.pose_prior_residual(T0, old_prior[0]), old_prior[1])
     window.prior_mean[index] = window.prior_mean[source_index]
     window.prior_W[index] = window.prior_W[source_index]
     window.evidence[index] = window.evidence[source_index]
-    window._anchor.invalidate(index)  # the older part's anchored model holds the prior
+    # the older part's anchored model holds the prior: its share is swapped, the frames' terms are kept
+    new_prior = (window.prior_mean[index], window.prior_W[index])
+    window._anchor.replace_prior(window.frames[:-1], index, old_prior, new_prior)
     if not valid:
         window._memo.clear()
         return

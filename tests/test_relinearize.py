@@ -165,15 +165,38 @@ def test_rows_copied_from_a_window_without_the_model_are_re_linearised() -> None
     assert w._anchor.arrays["valid"][2]
 
 
-def test_shared_books_re_linearise_the_rows_whose_prior_changed() -> None:
-    """share_books gives rows another window prior: their anchored older-part model (which holds the prior) is
-    dropped, so the anchored linearisation stays the exact one after the change."""
+def test_shared_books_swap_the_prior_in_the_anchored_model_without_re_evaluating_the_frames() -> None:
+    """share_books gives rows another window prior: the prior's share of their anchored older-part model is swapped
+    at the anchors (equal to a fresh evaluation there, to 1e-9), the rows stay anchored (no frame is re-evaluated),
+    and with the anchors at the current poses the linearisation is the exact one."""
     from pinpoint_fg.window_rows import share_books
 
     w, _ = _window(3, 10, np.random.default_rng(7), frames=4)
     anchored = _with_threshold(w, DEFAULT_RELIN_THRESHOLD)
-    anchored.linearize()  # anchors every row
+    anchored.linearize()  # anchors every row at the current poses
     exact = _with_threshold(anchored, 0.0)
     for win in (anchored, exact):
         share_books(win, [1, 2, 8], [0, 0, 9])
+    assert anchored._anchor.arrays["valid"].all()
     _assert_lin_close(anchored.linearize(), exact.linearize(), 1e-9)
+
+    # anchors away from the current poses (moved below the threshold): the model at the anchors is the fresh one
+    moved, _ = _window(3, 10, np.random.default_rng(8), frames=4)
+    moved = _with_threshold(moved, DEFAULT_RELIN_THRESHOLD)
+    moved.linearize()
+    moved.move_newest(np.full((10, 6), 0.05) * RELIN_SCALE, moved.linearize())
+    moved.linearize()
+    calls = []
+    original = type(moved._anchor)._evaluate
+    type(moved._anchor)._evaluate = lambda self, *a: calls.append(1) or original(self, *a)
+    try:
+        share_books(moved, [3, 4, 5], [0, 9, 9])
+        moved.linearize()
+    finally:
+        type(moved._anchor)._evaluate = original
+    assert not calls  # no older frame was evaluated again
+    a = moved._anchor.arrays
+    fresh = type(moved._anchor)._evaluate(type(moved._anchor)(), moved.frames[:-1], a["A"],
+                                          (moved.prior_mean, moved.prior_W), moved.deltas[:-1], moved.delta_W[:-1])
+    for k in ("V", "G", "Hd", "Bo", "Hinv", "H_last"):
+        np.testing.assert_allclose(a[k], fresh[k], rtol=0, atol=1e-9 * max(1.0, float(np.max(np.abs(fresh[k])))))

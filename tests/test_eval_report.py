@@ -215,3 +215,44 @@ def test_mismatched_recording_and_unknown_frames_are_input_errors(setup, tmp_pat
     with pytest.raises(InputError) as exc:
         evaluate_results([r2], out=tmp_path / "e", figures=False)
     assert "999" in str(exc.value) and "estimates.csv" in str(exc.value)
+
+
+def test_smoothed_poses_are_scored_against_the_filtered_ones_of_the_same_frames(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    """A window L = 3 result: filtered poses 1 mm off the truth, smoothed ones 0.25 mm off, none for the last two
+    frames. The smoothed columns score the smoothed poses and the filtered ones on the same F - 2 frames; a
+    result without smoothing has 0 frames and NaN; a smoothed frame missing from estimates.csv is an InputError."""
+    rec, results, _ = setup
+    settings = {"method": "map", "particles": 1, "window": 3, "seed": 0, "disabled": [], "noise_file": None}
+    out = tmp_path / "smoothed"
+    with ResultWriter(out, "map", settings, rec.info.name, str(rec.root.resolve()), smoothed=True) as w:
+        for r in rec.frames[:F]:
+            T = r.cam_T_needle_gt.copy()
+            T[:3, 3] += OFFSET_M
+            w.write(Estimate(frame=r.frame, t_s=r.t_s, cam_T_needle=T, q95_trans_m=2e-3, q95_rot_rad=0.1,
+                             bimodal=False, iterations=3, latency_ms=10.0, particles=T[None],
+                             log_posterior=np.zeros(1)))
+        for r in rec.frames[: F - 2]:
+            T = r.cam_T_needle_gt.copy()
+            T[:3, 3] += 0.25 * OFFSET_M
+            w.write_smoothed(r.frame, r.t_s, T)
+    rep = evaluate_results([out, results["map"]], out=tmp_path / "eval", figures=False)
+    row = rep.evaluations[0].row
+    assert row["smoothed_frames"] == F - 2
+    assert row["smoothed_trans_mean_mm"] == pytest.approx(0.25, abs=1e-9)
+    assert row["filtered_trans_mean_mm_same"] == pytest.approx(1.0, abs=1e-9)
+    assert row["smoothed_rot_mean_deg"] == pytest.approx(0.0, abs=1e-6)
+    plain = rep.evaluations[1].row
+    assert plain["smoothed_frames"] == 0 and np.isnan(plain["smoothed_trans_mean_mm"])
+    assert "fixed-lag smoothed poses" in rep.text and "0.25 mm" in rep.text
+    assert "## Fixed-lag smoothing" in (tmp_path / "eval" / "tables.md").read_text()
+    header, rows = _rows(tmp_path / "eval" / "summary.csv")
+    assert "smoothed_trans_mean_mm" in header and float(rows[0]["smoothed_trans_mean_mm"]) == pytest.approx(0.25)
+
+    # a smoothed row for a frame estimates.csv does not have
+    with open(out / "smoothed.csv", "a", encoding="utf-8") as fh:
+        last = open(out / "smoothed.csv", encoding="utf-8").read().splitlines()[-1].split(",")
+        last[0] = "9999"
+        fh.write(",".join(last) + "\n")
+    with pytest.raises(InputError, match="smoothed frame 9999 has no row in estimates.csv") as err:
+        evaluate_results([out], out=tmp_path / "eval2", figures=False)
+    assert "smoothed.csv" in str(err.value)

@@ -111,3 +111,17 @@ def test_no_pickle_eval_or_shell() -> None:
                     if not any(kw.arg == "allow_pickle" for kw in node.keywords):
                         problems.append(f"{where}: np.load without allow_pickle=False")
     assert not problems, problems
+
+
+@pytest.mark.parametrize("method", ["svn", "map", "mht"])
+def test_fixed_lag_smoothed_poses_cover_every_frame(run: Path, tmp_path: Path, method: str) -> None:
+    """With a window L = 3, smoothed.csv has one pose per frame, in order: steps report frame k - 2, and the
+    last two frames' come from the final window (``final_smoothed``), which equals the window's current values."""
+    out = track_recording(run, method, tmp_path / method, particles=12 if method == "svn" else None, window=3,
+                          seed=1, progress=False, max_frames=8)
+    res = read_result(out)
+    frames, T = res.smoothed
+    assert frames.tolist() == res.frame.tolist()
+    assert np.all(np.isfinite(T))
+    # the newest frame's smoothed pose is its filtered estimate (nothing newer was seen), to the file's precision
+    np.testing.assert_allclose(T[-1], res.cam_T_needle[-1], atol=1e-9)

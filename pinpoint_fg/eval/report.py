@@ -21,7 +21,9 @@ truth:
   bimodal (``bimodal_modes_share``), the truth kept by some mode / some particle, and — against a
   reference multi-hypothesis (MHT) result of the same recording, given with ``reference`` or found
   among the evaluated results (method ``mht``) — the bimodal rate of both verdicts on the frames
-  the reference calls multimodal vs single-mode.
+  the reference calls multimodal vs single-mode;
+* fixed-lag smoothing (results tracked with a window L > 1): the smoothed poses' mean errors beside the
+  filtered estimates' on the same frames (:func:`smoothed_accuracy`).
 
 The ΔNLL labels and the floor depend on the recording and the frame likelihood only (the
 likelihood switches and the noise, not the method), so they are computed once per
@@ -99,6 +101,8 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "floor_trans_mm", "floor_rot_deg", "trans_floor_multiple", "rot_floor_multiple",
     "trans_mm_none", "trans_mm_partial", "trans_mm_heavy", "rot_deg_none", "rot_deg_partial", "rot_deg_heavy",
     "latency_median_ms", "latency_p95_ms",
+    "smoothed_frames", "smoothed_trans_mean_mm", "smoothed_rot_mean_deg", "filtered_trans_mean_mm_same",
+    "filtered_rot_mean_deg_same",
 )
 
 
@@ -258,6 +262,38 @@ def _assess(res: Result, T_gt: np.ndarray, has_gt: np.ndarray) -> tuple[np.ndarr
     return bimodal, assessed, d, tid
 
 
+def smoothed_accuracy(res: Result, T_gt: np.ndarray, has_gt: np.ndarray, errors: PoseErrors) -> dict[str, float]:
+    """The fixed-lag smoothed poses (``smoothed.csv``, window L > 1) against the truth, beside the filtered estimate.
+
+    A smoothed pose of frame k is the window's oldest pose once frame k + L - 1 was seen (the last L - 1
+    frames' at the end of the run): it has seen more frames than the filtered estimate of k, so it is scored
+    against the filtered estimate **of the same frames** (``filtered_*_same``) — frames with ground truth and
+    both poses finite. ``T_gt``, ``has_gt``, ``errors``: per row of ``estimates.csv``. Keys: ``smoothed_frames``
+    (0 and NaN means without smoothed poses), ``smoothed_trans_mean_mm``, ``smoothed_rot_mean_deg``,
+    ``filtered_trans_mean_mm_same``, ``filtered_rot_mean_deg_same``.
+    """
+    out = {"smoothed_frames": 0, "smoothed_trans_mean_mm": float("nan"), "smoothed_rot_mean_deg": float("nan"),
+           "filtered_trans_mean_mm_same": float("nan"), "filtered_rot_mean_deg_same": float("nan")}
+    if res.smoothed is None or res.smoothed[0].size == 0:
+        return out
+    frames, T_s = res.smoothed
+    pos = {int(f): i for i, f in enumerate(res.frame)}
+    rows = np.array([pos.get(int(f), -1) for f in frames], dtype=int)
+    if np.any(rows < 0):
+        bad = int(np.argmax(rows < 0))
+        raise InputError(f"smoothed frame {int(frames[bad])} has no row in estimates.csv",
+                         file=res.root / "smoothed.csv", row=bad + 1, column="frame")
+    e_s = pose_errors(T_s, T_gt[rows])
+    use = has_gt[rows] & np.isfinite(e_s.trans_m) & np.isfinite(errors.trans_m[rows])
+    out["smoothed_frames"] = int(use.sum())
+    if use.any():
+        out["smoothed_trans_mean_mm"] = 1e3 * float(np.mean(e_s.trans_m[use]))
+        out["smoothed_rot_mean_deg"] = math.degrees(float(np.mean(e_s.rot_rad[use])))
+        out["filtered_trans_mean_mm_same"] = 1e3 * float(np.mean(errors.trans_m[rows][use]))
+        out["filtered_rot_mean_deg_same"] = math.degrees(float(np.mean(errors.rot_rad[rows][use])))
+    return out
+
+
 def _mean(x: np.ndarray) -> float:
     x = np.asarray(x, dtype=float)
     x = x[np.isfinite(x)]
@@ -336,6 +372,7 @@ def _evaluate_one(
         for k in ("bimodal_ref_multi_rate", "bimodal_ref_single_rate", "bimodal_modes_ref_multi_rate",
                   "bimodal_modes_ref_single_rate"):
             row[k] = float("nan")
+    row.update(smoothed_accuracy(res, T_gt, has_gt, errors))
     lat = res.latency_ms[np.isfinite(res.latency_ms)]
     row["latency_median_ms"] = float(np.median(lat)) if lat.size else float("nan")
     row["latency_p95_ms"] = float(np.percentile(lat, 95)) if lat.size else float("nan")
@@ -402,6 +439,20 @@ def table_multimodal(evals: Sequence[ResultEvaluation]) -> str:
     ] for ev in evals]
     header = ("Method", "Recording", "Bimodal (all frames)", "Truth in dominant mode", "Ambiguous frames",
               "Bimodal on ambiguous (sensitivity)", "Clear frames", "Bimodal on clear (false)")
+    return _md_table(header, rows)
+
+
+def table_smoothed(evals: Sequence[ResultEvaluation]) -> str:
+    """Markdown table of the fixed-lag smoothed poses' errors beside the filtered ones ('' without any)."""
+    rows = [[
+        ev.label, ev.row["recording"], str(ev.row["smoothed_frames"]), _f(ev.row["smoothed_trans_mean_mm"]),
+        _f(ev.row["smoothed_rot_mean_deg"]), _f(ev.row["filtered_trans_mean_mm_same"]),
+        _f(ev.row["filtered_rot_mean_deg_same"]),
+    ] for ev in evals if ev.row["smoothed_frames"] > 0]
+    if not rows:
+        return ""
+    header = ("Method", "Recording", "Frames", "Smoothed trans (mm)", "Smoothed rot (deg)",
+              "Filtered trans, same frames (mm)", "Filtered rot, same frames (deg)")
     return _md_table(header, rows)
 
 
@@ -495,6 +546,16 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
                 f"{_pct(r['bimodal_ref_multi_rate'])} / {_pct(r['bimodal_ref_single_rate'])}, modes "
                 f"{_pct(r['bimodal_modes_ref_multi_rate'])} / {_pct(r['bimodal_modes_ref_single_rate'])} "
                 f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)"
+            )
+    smoothed = [ev for ev in evals if ev.row["smoothed_frames"] > 0]
+    if smoothed:
+        lines += ["", "fixed-lag smoothed poses (smoothed.csv) vs the filtered estimates of the same frames:"]
+        for ev in smoothed:
+            r = ev.row
+            lines.append(
+                f"  {r['recording']}  {ev.label}: smoothed {_f(r['smoothed_trans_mean_mm'])} mm / "
+                f"{_f(r['smoothed_rot_mean_deg'])} deg, filtered {_f(r['filtered_trans_mean_mm_same'])} mm / "
+                f"{_f(r['filtered_rot_mean_deg_same'])} deg ({r['smoothed_frames']} frames)"
             )
     lines.append("bimodal = raw share; on ambig./on clear = bimodal rate on frames whose second circle pose "
                  "is within 2.3 nats / beyond 10 nats of the truth's (ΔNLL)")
@@ -706,6 +767,9 @@ def evaluate_results(
           "", "## Posterior modes", "", table_modes(evals)]
     if t3:
         md += ["", "## Ablations (Table III)", "", t3]
+    ts = table_smoothed(evals)
+    if ts:
+        md += ["", "## Fixed-lag smoothing", "", ts]
     (out / "tables.md").write_text("\n".join(md) + "\n", encoding="utf-8")
     files.append(out / "tables.md")
     if figures:

@@ -270,6 +270,14 @@ class MapSmoother:
             del self.stamps[k]
         return cov, fell_back, smoothed
 
+    def remaining_smoothed(self) -> list[tuple[int, float, np.ndarray]]:
+        """At the end of a run: the window's poses :meth:`finish` has not reported as smoothed (its last
+        ``L - 1`` frames, fewer after a restart), each at its smoothed value, oldest first."""
+        if self.window <= 1 or self.smoother is None or self.key < 0:
+            return []
+        start = max(self.key - (self.window - 1) + 1, self.first_key)
+        return [(*self.stamps[k], self.estimate(k)) for k in range(start, self.key + 1) if k in self.stamps]
+
 
 class MapTracker(Tracker):
     """GTSAM batch fixed-lag smoother over a window of ``config.window`` frames (module docstring)."""
@@ -307,6 +315,11 @@ class MapTracker(Tracker):
     def newest_key(self) -> int:
         """GTSAM key of the newest pose (-1 before the first frame)."""
         return self._branch.key
+
+    def final_smoothed(self) -> list[tuple[int, float, np.ndarray]]:
+        """``(frame, t_s, cam_T_needle)`` of the window's last ``L - 1`` frames at the end of a run (their smoothed
+        poses are not reported by :meth:`step`); ``track`` writes them to smoothed.csv."""
+        return self._branch.remaining_smoothed()
 
     @property
     def particles(self) -> np.ndarray:

@@ -286,6 +286,13 @@ class MhtTracker(Tracker):
         return out, n_prop, admitted, rec
 
     # ------------------------------------------------------------------ step
+    def final_smoothed(self) -> list[tuple[int, float, np.ndarray]]:
+        """``(frame, t_s, cam_T_needle)`` of the last ``L - 1`` frames at the end of a run, from the best branch's
+        smoother (the one whose smoothed poses :meth:`step` reports); ``track`` writes them to smoothed.csv."""
+        if not self.branches:
+            return []
+        return self.branches[0].smoother.remaining_smoothed()
+
     def step(self, observation: Observation) -> Estimate:
         """Update every branch, branch on the proposals, weigh by Laplace evidence, prune (module docstring)."""
         t0 = time.perf_counter()

@@ -320,6 +320,19 @@ class SvnTracker(Tracker):
         jitter = self.rng.normal(size=(int(dead.sum()), 6)) * np.asarray(self.svn.jitter_sigma)
         self.window.poses[-1, dead] = self.window.poses[-1, dead] @ se3_exp(jitter)
 
+    def final_smoothed(self) -> list[tuple[int, float, np.ndarray]]:
+        """``(frame, t_s, cam_T_needle)`` of the window's poses :meth:`step` has not reported as smoothed (the last
+        ``L - 1`` frames at the end of a run), from the last MAP hypothesis's window; ``track`` writes them."""
+        i = getattr(self, "_last_map", None)
+        if self.config.window <= 1 or self.window.poses is None or i is None:
+            return []
+        n = self.window.size
+        start = 1 if n == self.config.window else 0  # the oldest pose was reported by the last step
+        if n <= start:
+            return []
+        return [(f, t, self.window.poses[j, i].copy())
+                for j, (f, t) in zip(range(start, n), self._times[-(n - start):], strict=True)]
+
     def step(self, observation: Observation) -> Estimate:
         """Process one frame (see the module docstring)."""
         t0 = time.perf_counter()
@@ -386,6 +399,7 @@ class SvnTracker(Tracker):
         logp = -value
         i, q_t, q_r, cov = summarize(particles, logp, map_index=i)
         smoothed = None
+        self._last_map = i
         if self.config.window > 1 and self.window.size == self.config.window:
             f, t = self._times[-self.config.window]
             smoothed = (f, t, self.window.oldest[i].copy())

@@ -58,6 +58,7 @@ from pinpoint_fg.eval.modes import (
     reference_rates,
     truth_kept,
 )
+from pinpoint_fg.eval.spread_calibration import SpreadScale, coverage, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
@@ -501,6 +502,19 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     return "\n".join(lines)
 
 
+def coverage_text(evals: Sequence[ResultEvaluation], scale: SpreadScale) -> str:
+    """q95 coverage per result before and after the spread scale (rows need ``coverage_raw_*``)."""
+    src = scale.source or "the given spread scale"
+    lines = [f"q95 coverage (share of frames whose error is within q95), raw -> scaled by {src}:",
+             "recording  method  kappa t/r  raw cover t/r  scaled cover t/r"]
+    for ev in evals:
+        r = ev.row
+        lines.append(f"  {r['recording']}  {ev.label}  {r['spread_kappa_trans']:.2f}/{r['spread_kappa_rot']:.2f}  "
+                     f"{_pct(r['coverage_raw_trans'])}/{_pct(r['coverage_raw_rot'])}  "
+                     f"{_pct(r['coverage_trans'])}/{_pct(r['coverage_rot'])}")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------------------------------
 # figures
 
@@ -627,6 +641,7 @@ def evaluate_results(
     config: AmbiguityConfig | None = None,
     progress: Callable[[str], None] | None = None,
     reference: Path | str | None = None,
+    spread_scale: SpreadScale | None = None,
 ) -> EvaluationReport:
     """Evaluate result directories (module docstring); returns everything computed.
 
@@ -637,6 +652,10 @@ def evaluate_results(
     ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
     bimodal verdicts of the results of the same recording; without it, the first ``mht`` result of
     each recording among ``results`` is used.
+    ``spread_scale`` (:mod:`pinpoint_fg.eval.spread_calibration`): every result's q95 columns are multiplied
+    by its method's factors before any metric or figure uses them (the files are not changed); the rows gain
+    ``spread_kappa_trans`` / ``_rot`` and the raw coverage ``coverage_raw_trans`` / ``_rot``, and the text a
+    coverage table raw vs scaled.
     """
     results = expand_result_dirs(results)
     if not results:
@@ -647,8 +666,12 @@ def evaluate_results(
     given = read_recording(recording) if recording is not None else None
     cache: dict[Path, Recording] = {}
     loaded: list[tuple[Result, Recording, MeasurementModel, tuple]] = []
+    raw_q95: list[tuple[np.ndarray, np.ndarray]] = []
     for p in results:
         res = read_result(p)
+        raw_q95.append((res.q95_trans_m, res.q95_rot_rad))
+        if spread_scale is not None:
+            res = scaled_result(res, spread_scale)
         rec = _recording_for(res, given, cache)
         noise, noise_key = _noise_of(res)
         disabled = _disabled_of(res)
@@ -700,6 +723,14 @@ def evaluate_results(
         say(f"metrics: {label} on {rec.info.name}")
         evals.append(_evaluate_one(res, rec, analyses[key], variant, label, res_modes, refs.get(rec.info.name)))
 
+    text_scaled = ""
+    if spread_scale is not None:
+        for ev, (qt, qr) in zip(evals, raw_q95, strict=True):
+            s = spread_scale.for_method(ev.method)
+            ev.row["spread_kappa_trans"], ev.row["spread_kappa_rot"] = s.kappa_trans, s.kappa_rot
+            ev.row["coverage_raw_trans"] = coverage(np.where(ev.has_gt, ev.errors.trans_m, np.nan), qt)
+            ev.row["coverage_raw_rot"] = coverage(np.where(ev.has_gt, ev.errors.rot_rad, np.nan), qr)
+        text_scaled = "\n\n" + coverage_text(evals, spread_scale)
     files = [_write_summary(evals, out / "summary.csv")]
     t2, t3, tm = table_ii(evals), table_iii(evals), table_multimodal(evals)
     md = ["# Evaluation", "", "## Tracking comparison (Table II)", "", t2, "", "## Multimodality", "", tm,
@@ -711,11 +742,16 @@ def evaluate_results(
     if figures:
         say("figures")
         files += _figures(evals, out)
-    text = comparison_text(evals)
+    text = comparison_text(evals) + text_scaled
     return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)
 
 
 def evaluate(results: list[Path], recording: Path | None = None, out: Path = Path("evaluation"),
-             reference: Path | None = None) -> str:
-    """Evaluate results, write summary.csv, tables.md and figures to ``out``; return the printable summary."""
-    return evaluate_results(results, recording, out, reference=reference).text
+             reference: Path | None = None, spread_scale: Path | None = None) -> str:
+    """Evaluate results, write summary.csv, tables.md and figures to ``out``; return the printable summary.
+
+    ``spread_scale``: a file of ``calibrate-spread`` whose factors scale the results' q95 (see
+    :func:`evaluate_results`); it is read before anything is computed.
+    """
+    scale = SpreadScale.load(spread_scale) if spread_scale is not None else None
+    return evaluate_results(results, recording, out, reference=reference, spread_scale=scale).text

@@ -1,0 +1,411 @@
+"""Post-hoc recalibration of the reported q95 spread (``pinpoint-fg calibrate-spread``, ``evaluate --spread-scale``).
+
+Every tracker reports, per frame, a 95 % bound on its MAP error: ``q95_trans_m`` and ``q95_rot_rad``
+(:func:`pinpoint_fg.posterior.spread.tangent_spread`). On the simulator's runs these bounds are too
+tight (README, "Results"): the kinematic error is a slowly varying bias (an Ornstein-Uhlenbeck process,
+tau = 5 s) and the mask noise is correlated along the arc, which the trackers' per-frame independent
+noise model cannot represent, so the posterior is overconfident by a roughly constant factor.
+
+The fix is the one used for an inconsistent filter covariance (NEES-style consistency scaling; the
+quantile recalibration of Kuleshov et al., ICML 2018, reduced to one multiplicative parameter): fit, on
+training runs with ground truth, one factor per method and per part,
+
+    kappa = Q_0.95 { err_f / q95_f : f in the training frames },
+
+the empirical 95 % quantile of the ratio of the MAP error to the reported bound (``inverted_cdf``: the
+smallest ratio that at least 95 % of the frames do not exceed). Then ``kappa · q95`` covers 95 % of the
+training frames (``>= 95 %``; exactly the smallest such share the data allow). The scale never moves a
+pose estimate, particles, mode weights or ``modes.csv`` covariances; it rescales the two q95 columns
+when results are evaluated with it, and nothing on disk.
+
+Decisions the literature leaves to the user:
+
+* **One scalar per (method, part)**, not per frame or per scenario: the overconfidence factor is
+  similar across the clear scenarios (README: 1.4-2.1 for SVN, 1.5-3.2 for MAP) and a one-parameter
+  fit on ~750 frames is hard to over-fit. Methods are keyed by ``result.json``'s ``method``; a result of
+  a method the file has no scale for is refused, never passed through raw. ``kappa < 1`` is allowed
+  (an *under*confident method, e.g. SVGD, gets its bound shrunk), so the fit is two-sided.
+* **Frames used**: those with ground truth, a finite MAP error and a finite q95. A frame whose q95 is
+  NaN made no claim and is skipped (counted in ``skipped_frames``). A frame whose q95 is 0 with a
+  nonzero error has ratio ``+inf``: no scale covers it and it counts as a miss. If more than 5 % of the
+  frames are such misses no finite scale reaches 95 % and the fit refuses (:class:`InputError`).
+* **Frames whose MAP is in another mode are left out of the fit** (rotation error beyond
+  ``mode_gate_rad``, default 30°). q95 is a *local* claim, the spread of the mode the MAP sits in; a
+  MAP in the mirrored or flipped pose (35-180° off) is a wrong decision between modes, which the
+  modes metrics score, and no factor on a local spread can cover it. Measured on the seed-2 runs of
+  the clear scenarios, a whole run can sit in the other mode (MAP on slow-02, calibration-02 and
+  drive-02: 68-160° mean rotation error): fitting on them gave MAP factors of 8 / 53 that say nothing
+  about the spread. The gate sits in the gap of the error distribution: over the seed-2 clear runs
+  every tracker's in-mode rotation errors stay below 25° and the other-mode ones start at 30-40°, and
+  no frame with a translation error above 3 mm had a rotation error below 30°. So the gate removes
+  mode flips, not the tail of the within-mode error (which would bias the factor low). It is a
+  *training* device only (it needs the truth): when the factor is applied nothing is gated, and the
+  held-out coverage is reported both on every frame and on in-mode frames (README). Pass
+  ``mode_gate_rad = pi`` to fit on every frame. Runs whose posterior is genuinely two-sided
+  (symmetric, snapshots) are still better left out of the training set.
+* Before rounding, ``kappa`` is raised by one part in 1e12 so that the boundary frame, whose ratio is
+  ``kappa`` itself, is still covered after the product ``kappa · q95`` is rounded.
+
+File format (JSON, UTF-8)::
+
+    {"format": "pinpoint-spread-scale", "version": 1, "level": 0.95, "mode_gate_rad": 0.5236,
+     "methods": {"svn": {"kappa_trans": 1.8, "kappa_rot": 1.6, "frames": 730, "skipped_frames": 0,
+                         "wrong_mode_frames": 20, "coverage_raw_trans": 0.71, "coverage_raw_rot": 0.64}, ...},
+     "unfitted": {"pf": "why it could not be fitted"},
+     "results": ["/path/of/a/training/result", ...]}
+
+Required: ``format``, ``version``, ``level`` in (0, 1), ``mode_gate_rad`` in (0, pi], a non-empty
+``methods`` with finite positive ``kappa_trans`` and ``kappa_rot`` per method. Optional: the counts
+(non-negative integers, default 0), ``coverage_raw_*`` (the training coverage before scaling, in [0, 1]
+or null), ``unfitted`` (method -> reason; such a method is refused when applied, naming the reason) and
+``results`` (the training results, provenance only). Unknown keys are ignored (forward compatibility).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.eval.metrics import pose_errors
+from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording, json_shown
+from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
+from pinpoint_fg.io.result.schema import Result
+
+SPREAD_SCALE_FORMAT = "pinpoint-spread-scale"
+SPREAD_SCALE_VERSION = 1
+LEVEL = 0.95
+"""Coverage the scaled bound is fitted to: the trackers report a 95 % bound."""
+_BOUNDARY_NUDGE = 1e-12
+"""Relative increase of the fitted quantile so that ``kappa · q95`` still covers the boundary frame."""
+PARTS = ("trans", "rot")
+MODE_GATE_RAD = math.radians(30.0)
+"""Default gate: a training frame whose MAP rotation error exceeds 30° is in another mode (module docstring)."""
+
+
+# ----------------------------------------------------------------------------- the fit
+
+
+def scale_quantile(err: np.ndarray, q95: np.ndarray, level: float = LEVEL, what: str = "q95") -> float:
+    """``kappa``: the smallest factor with ``err <= kappa · q95`` on at least ``level`` of the frames.
+
+    ``err`` and ``q95`` (F,) share one unit, are finite and non-negative (the caller selects the frames).
+    ``q95 = 0`` gives the ratio ``0`` when ``err = 0`` and ``+inf`` otherwise (never covered). Raises
+    :class:`InputError` (naming ``what``) for no frames, bad values, or when no finite factor suffices.
+    """
+    err = np.asarray(err, dtype=float).reshape(-1)
+    q = np.asarray(q95, dtype=float).reshape(-1)
+    if err.shape != q.shape:
+        raise InputError(f"{err.size} errors but {q.size} q95 values", column=what)
+    if err.size == 0:
+        raise InputError("no frame with ground truth and a finite q95 to fit on", column=what)
+    if not (np.all(np.isfinite(err)) and np.all(np.isfinite(q))) or np.any(err < 0) or np.any(q < 0):
+        raise InputError("errors and q95 must be finite and non-negative", column=what)
+    if not 0.0 < level < 1.0:
+        raise InputError(f"level must lie in (0, 1), got {level}", column="level")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(q > 0, err / np.where(q > 0, q, 1.0), np.where(err > 0, np.inf, 0.0))
+    kappa = float(np.quantile(ratio, level, method="inverted_cdf"))
+    if not math.isfinite(kappa):
+        misses = int(np.sum(np.isinf(ratio)))
+        raise InputError(f"{misses} of {ratio.size} frames report q95 = 0 with a nonzero error: no finite scale "
+                         f"covers {100 * level:g} % of them", column=what)
+    if kappa == 0.0:
+        raise InputError(f"the errors are zero on {100 * level:g} % of the frames: the scale is 0, not usable",
+                         column=what)
+    return kappa * (1.0 + _BOUNDARY_NUDGE)
+
+
+@dataclass(frozen=True)
+class MethodScale:
+    """The fitted factors of one method (and their training statistics, for the record)."""
+
+    kappa_trans: float
+    """Factor applied to ``q95_trans_m`` (dimensionless, > 0)."""
+    kappa_rot: float
+    """Factor applied to ``q95_rot_rad`` (dimensionless, > 0)."""
+    frames: int = 0
+    """Training frames both factors were fitted on."""
+    skipped_frames: int = 0
+    """Training frames with ground truth left out because a q95 was not finite (no claim)."""
+    wrong_mode_frames: int = 0
+    """Training frames left out because the MAP was in another mode (rotation error beyond the gate)."""
+    coverage_raw_trans: float = float("nan")
+    """Share of the training frames whose translation error is within the raw q95."""
+    coverage_raw_rot: float = float("nan")
+    """Share of the training frames whose rotation error is within the raw q95."""
+
+
+@dataclass(frozen=True)
+class SpreadScale:
+    """Per-method q95 factors fitted by :func:`fit_spread_scale` (the file of ``calibrate-spread``)."""
+
+    methods: dict[str, MethodScale]
+    """Method name (``result.json``'s ``method``) -> its factors."""
+    level: float = LEVEL
+    """The coverage the factors were fitted to."""
+    mode_gate_rad: float = math.pi
+    """Training frames whose MAP rotation error exceeded this were left out (another mode), radians."""
+    results: tuple[str, ...] = ()
+    """The training result directories (provenance)."""
+    unfitted: dict[str, str] = field(default_factory=dict)
+    """Methods of the training results that could not be fitted -> why (e.g. a collapsed particle filter)."""
+    source: str | None = None
+    """The file it was read from (None when built in memory)."""
+
+    def for_method(self, method: str) -> MethodScale:
+        """The factors of ``method``; :class:`InputError` when the file has none (never a silent 1.0)."""
+        if method in self.unfitted:
+            raise InputError(f"no scale for method {method!r}: it could not be fitted ({self.unfitted[method]})",
+                             file=self.source, column=f"methods.{method}")
+        if method not in self.methods:
+            have = ", ".join(sorted(self.methods)) or "none"
+            raise InputError(f"no scale for method {method!r} (the file has: {have}); fit one with "
+                             "`pinpoint-fg calibrate-spread` on results of that method", file=self.source,
+                             column=f"methods.{method}")
+        return self.methods[method]
+
+    def to_json(self) -> dict[str, Any]:
+        """The file's JSON document (NaN statistics written as null)."""
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        return {
+            "format": SPREAD_SCALE_FORMAT, "version": SPREAD_SCALE_VERSION, "level": self.level,
+            "mode_gate_rad": self.mode_gate_rad,
+            "methods": {m: {"kappa_trans": s.kappa_trans, "kappa_rot": s.kappa_rot, "frames": s.frames,
+                            "skipped_frames": s.skipped_frames, "wrong_mode_frames": s.wrong_mode_frames,
+                            "coverage_raw_trans": num(s.coverage_raw_trans),
+                            "coverage_raw_rot": num(s.coverage_raw_rot)}
+                        for m, s in sorted(self.methods.items())},
+            "unfitted": dict(sorted(self.unfitted.items())),
+            "results": list(self.results),
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the JSON file; returns its path."""
+        path = Path(path)
+        path.write_text(json.dumps(self.to_json(), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> SpreadScale:
+        """Read and validate a spread-scale file; every problem is one :class:`InputError` naming the key."""
+        path = Path(path)
+        doc = load_json(path)
+        if not isinstance(doc, dict):
+            raise InputError("the top level must be a JSON object", file=path)
+        if doc.get("format") != SPREAD_SCALE_FORMAT:
+            raise InputError(f"must be {SPREAD_SCALE_FORMAT!r}, got {json_shown(doc.get('format'))}", file=path,
+                             column="format")
+        version = doc.get("version")
+        if version != SPREAD_SCALE_VERSION or isinstance(version, bool):
+            raise InputError(f"unsupported version {json_shown(version)} (this reader knows "
+                             f"{SPREAD_SCALE_VERSION})", file=path, column="version")
+        level = _number(doc, "level", path, "level")
+        if not 0.0 < level < 1.0:
+            raise InputError(f"must lie in (0, 1), got {level!r}", file=path, column="level")
+        gate = _number(doc, "mode_gate_rad", path, "mode_gate_rad")
+        if not 0.0 < gate <= math.pi:
+            raise InputError(f"must lie in (0, pi], got {gate!r}", file=path, column="mode_gate_rad")
+        methods = doc.get("methods")
+        if not isinstance(methods, dict) or not methods:
+            raise InputError(f"must be a non-empty object of method -> factors, got {json_shown(methods)}",
+                             file=path, column="methods")
+        parsed = {}
+        for name, entry in methods.items():
+            key = f"methods.{name}"
+            if not isinstance(entry, dict):
+                raise InputError(f"must be an object, got {json_shown(entry)}", file=path, column=key)
+            kappa = {}
+            for part in PARTS:
+                k = _number(entry, f"kappa_{part}", path, f"{key}.kappa_{part}")
+                if not k > 0.0:
+                    raise InputError(f"must be positive, got {k!r}", file=path, column=f"{key}.kappa_{part}")
+                kappa[part] = k
+            counts = {c: _count(entry, c, path, f"{key}.{c}") for c in ("frames", "skipped_frames",
+                                                                        "wrong_mode_frames")}
+            cover = {}
+            for part in PARTS:
+                c = f"coverage_raw_{part}"
+                v = entry.get(c)
+                if v is None:
+                    cover[part] = float("nan")
+                    continue
+                v = _number(entry, c, path, f"{key}.{c}")
+                if not 0.0 <= v <= 1.0:
+                    raise InputError(f"must lie in [0, 1], got {v!r}", file=path, column=f"{key}.{c}")
+                cover[part] = v
+            parsed[str(name)] = MethodScale(kappa["trans"], kappa["rot"], **counts, coverage_raw_trans=cover["trans"],
+                                            coverage_raw_rot=cover["rot"])
+        results = doc.get("results", [])
+        if not isinstance(results, list) or not all(isinstance(r, str) for r in results):
+            raise InputError("must be a list of strings (the training results)", file=path, column="results")
+        unfitted = doc.get("unfitted", {})
+        if not isinstance(unfitted, dict) or not all(isinstance(v, str) for v in unfitted.values()):
+            raise InputError("must be an object of method -> reason (strings)", file=path, column="unfitted")
+        both = sorted(set(unfitted) & set(parsed))
+        if both:
+            raise InputError(f"method {both[0]!r} is both fitted and unfitted", file=path, column=f"unfitted.{both[0]}")
+        return cls(methods=parsed, level=level, mode_gate_rad=gate, results=tuple(results), unfitted=dict(unfitted),
+                   source=str(path))
+
+
+def _number(doc: dict, key: str, path: Path, column: str) -> float:
+    """A required finite JSON number (not a boolean) of ``doc``."""
+    if key not in doc:
+        raise InputError("missing required key", file=path, column=column)
+    v = doc[key]
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise InputError(f"must be a number, got {json_shown(v)}", file=path, column=column)
+    v = float(v)
+    if not math.isfinite(v):
+        raise InputError(f"must be finite, got {v!r}", file=path, column=column)
+    return v
+
+
+def _count(doc: dict, key: str, path: Path, column: str) -> int:
+    """An optional non-negative JSON integer (default 0)."""
+    v = doc.get(key, 0)
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise InputError(f"must be a non-negative integer, got {json_shown(v)}", file=path, column=column)
+    return int(v)
+
+
+# ----------------------------------------------------------------------------- results and their truth
+
+
+def _recording_of(res: Result, cache: dict[Path, Recording]) -> Recording:
+    """The recording named by ``result.json``'s ``recording_path`` (relative: to the result), read once."""
+    path = res.info.get("recording_path")
+    if not path:
+        raise InputError('key "recording_path" is empty: the result does not say which recording it tracked',
+                         file=res.root / "result.json", column="recording_path")
+    p = Path(str(path))
+    if not p.is_absolute() and not p.exists():
+        p = res.root / p
+    key = p.resolve()
+    if key not in cache:
+        cache[key] = read_recording(p)
+    rec = cache[key]
+    if str(res.info.get("recording_name")) != rec.info.name:
+        raise InputError(f"result is of recording {res.info.get('recording_name')!r}, the recording is "
+                         f"{rec.info.name!r}", file=res.root / "result.json", column="recording_name")
+    return rec
+
+
+@dataclass(frozen=True)
+class FrameErrors:
+    """A result's per-frame MAP errors against the truth next to its reported bounds (frame axis first)."""
+
+    err_trans_m: np.ndarray
+    """(F,) translation error, metres (NaN without truth)."""
+    err_rot_rad: np.ndarray
+    """(F,) rotation error, radians (NaN without truth)."""
+    q95_trans_m: np.ndarray
+    """(F,) reported translation bound, metres (NaN: none)."""
+    q95_rot_rad: np.ndarray
+    """(F,) reported rotation bound, radians (NaN: none)."""
+
+
+def frame_errors(res: Result, recording: Recording) -> FrameErrors:
+    """Errors of ``res``'s MAP poses against ``recording``'s truth, matched by frame index."""
+    truth = {int(r.frame): r.cam_T_needle_gt for r in recording.frames}
+    T_gt = np.full((len(res), 4, 4), np.nan)
+    for i, f in enumerate(res.frame):
+        if int(f) not in truth:
+            raise InputError(f"frame {int(f)} is not in recording {recording.root}", file=res.root / "estimates.csv",
+                             row=i + 1, column="frame")
+        if truth[int(f)] is not None:
+            T_gt[i] = truth[int(f)]
+    e = pose_errors(res.cam_T_needle, T_gt)
+    return FrameErrors(e.trans_m, e.rot_rad, res.q95_trans_m, res.q95_rot_rad)
+
+
+def fit_spread_scale(results: list[str | Path], level: float = LEVEL,
+                     mode_gate_rad: float = MODE_GATE_RAD) -> SpreadScale:
+    """Fit one :class:`MethodScale` per method over ``results`` (module docstring); frames of all runs pooled.
+
+    ``results``: result directories or directories of results (``batch`` output), each naming its
+    recording in ``result.json``; their recordings must hold ground truth. A frame enters the fit when it
+    has truth, both q95 are finite and the MAP's rotation error is at most ``mode_gate_rad`` (``pi``: no
+    gate; see the module docstring for the gate and for q95 = 0). A method whose factors cannot be fitted
+    is listed in ``unfitted`` with the reason; :class:`InputError` when no method can be.
+    """
+    if not 0.0 < mode_gate_rad <= math.pi:
+        raise InputError(f"the mode gate must lie in (0, 180] degrees, got {math.degrees(mode_gate_rad):g}",
+                         column="mode_gate")
+    dirs = expand_result_dirs(results)
+    if not dirs:
+        raise InputError("no results to fit the spread scale on")
+    cache: dict[Path, Recording] = {}
+    pooled: dict[str, list[FrameErrors]] = {}
+    for d in dirs:
+        res = read_result(d)
+        pooled.setdefault(res.method, []).append(frame_errors(res, _recording_of(res, cache)))
+    methods, unfitted = {}, {}
+    for m, parts in sorted(pooled.items()):
+        et = np.concatenate([p.err_trans_m for p in parts])
+        er = np.concatenate([p.err_rot_rad for p in parts])
+        qt = np.concatenate([p.q95_trans_m for p in parts])
+        qr = np.concatenate([p.q95_rot_rad for p in parts])
+        truth = np.isfinite(et) & np.isfinite(er)
+        claims = truth & np.isfinite(qt) & np.isfinite(qr)
+        in_mode = np.zeros_like(truth)
+        in_mode[truth] = er[truth] <= mode_gate_rad
+        use = claims & in_mode
+        if np.any(qt[use] < 0) or np.any(qr[use] < 0):
+            raise InputError(f"method {m!r}: a result reports a negative q95", column="q95")
+        try:
+            kt = scale_quantile(et[use], qt[use], level, what="q95_trans_m")
+            kr = scale_quantile(er[use], qr[use], level, what="q95_rot_rad")
+        except InputError as exc:
+            unfitted[m] = f"{exc.column}: {exc.reason}"
+            continue
+        methods[m] = MethodScale(
+            kappa_trans=kt, kappa_rot=kr, frames=int(use.sum()), skipped_frames=int(np.sum(truth & ~claims)),
+            wrong_mode_frames=int(np.sum(claims & ~in_mode)),
+            coverage_raw_trans=float(np.mean(et[use] <= qt[use])), coverage_raw_rot=float(np.mean(er[use] <= qr[use])),
+        )
+    if not methods:
+        why = "; ".join(f"{m}: {r}" for m, r in unfitted.items())
+        raise InputError(f"no method could be fitted ({why})")
+    return SpreadScale(methods=methods, level=level, mode_gate_rad=mode_gate_rad,
+                       results=tuple(str(Path(d).resolve()) for d in dirs), unfitted=unfitted)
+
+
+# ----------------------------------------------------------------------------- applying it
+
+
+def scaled_result(res: Result, scale: SpreadScale) -> Result:
+    """``res`` with its q95 columns multiplied by its method's factors (a copy; nothing on disk changes)."""
+    s = scale.for_method(res.method)
+    return replace(res, q95_trans_m=s.kappa_trans * np.asarray(res.q95_trans_m, dtype=float),
+                   q95_rot_rad=s.kappa_rot * np.asarray(res.q95_rot_rad, dtype=float))
+
+
+def coverage(err: np.ndarray, q95: np.ndarray) -> float:
+    """Share of the frames with a finite error and a finite q95 whose error is within q95 (NaN: none)."""
+    err, q95 = np.asarray(err, dtype=float), np.asarray(q95, dtype=float)
+    use = np.isfinite(err) & np.isfinite(q95)
+    return float(np.mean(err[use] <= q95[use])) if use.any() else float("nan")
+
+
+def format_scale(scale: SpreadScale) -> str:
+    """The fitted factors as a text table (one row per method)."""
+    lines = [f"spread scale for {100 * scale.level:g} % coverage, fitted on {len(scale.results)} result(s), "
+             f"frames with a rotation error beyond {math.degrees(scale.mode_gate_rad):g} deg left out",
+             "method  frames  other mode  raw cover t/r   kappa t/r"]
+    for m, s in sorted(scale.methods.items()):
+        lines.append(f"{m:<6} {s.frames:7d} {s.wrong_mode_frames:11d}  {100 * s.coverage_raw_trans:5.1f}/"
+                     f"{100 * s.coverage_raw_rot:5.1f} %  {s.kappa_trans:5.2f}/{s.kappa_rot:5.2f}")
+    for m, why in sorted(scale.unfitted.items()):
+        lines.append(f"{m:<6} not fitted: {why}")
+    return "\n".join(lines)

@@ -36,8 +36,8 @@ Decisions the literature leaves to the user:
   the clear scenarios, a whole run can sit in the other mode (MAP on slow-02, calibration-02 and
   drive-02: 68-160° mean rotation error): fitting on them gave MAP factors of 8 / 53 that say nothing
   about the spread. The gate sits in the gap of the error distribution: over the seed-2 clear runs
-  every tracker's in-mode rotation errors stay below 25° and the other-mode ones start at 30-40°, and
-  no frame with a translation error above 3 mm had a rotation error below 30°. So the gate removes
+  every tracker's rotation error is either at most 13.6° or beyond 40°, and no frame with a
+  translation error above 3 mm had a rotation error below 30°. So the gate removes
   mode flips, not the tail of the within-mode error (which would bias the factor low). It is a
   *training* device only (it needs the truth): when the factor is applied nothing is gated, and the
   held-out coverage is reported both on every frame and on in-mode frames (README). Pass

@@ -100,6 +100,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         verdict_workers=1,  # bimodality verdicts in a worker process, alongside the tracker
         robust=args.robust,
+        spread_scale=args.spread_scale,
     )
     print(f"wrote {out}")
     return 0
@@ -131,8 +132,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_calibrate_spread(args: argparse.Namespace) -> int:
     import math
 
-    from pinpoint_fg.eval.spread_calibration import fit_spread_scale, format_scale
+    from pinpoint_fg.eval.spread_calibration import fit_spread_scale
     from pinpoint_fg.io.outdir import prepare_output_file
+    from pinpoint_fg.posterior.spread_scale import format_scale
 
     prepare_output_file(args.out, args.overwrite, "spread scale")
     scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg))
@@ -335,6 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none); "
                         "'none' switches all off; default: the noise file's or the built-in defaults")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
+                   help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_track)

@@ -9,26 +9,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 from factors.lie import se3_exp
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.estimate import Estimate
-from pinpoint_fg.eval.spread_calibration import (
-    MethodScale,
-    SpreadScale,
-    coverage,
-    fit_spread_scale,
-    frame_errors,
-    scale_quantile,
-    scaled_result,
-)
+from pinpoint_fg.eval.spread_calibration import coverage, fit_spread_scale, frame_errors, scale_quantile, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.io.result.writer import ResultWriter
+from pinpoint_fg.posterior.spread_scale import MethodScale, SpreadScale, recorded_scale
 from pinpoint_fg.sim.scenarios import simulate
 
 F = 40
@@ -211,110 +202,6 @@ def test_file_round_trip(data, tmp_path: Path) -> None:  # noqa: ANN001
     assert back.source == str(path)
 
 
-def _valid_doc() -> dict:
-    return {"format": "pinpoint-spread-scale", "version": 1, "level": 0.95, "mode_gate_rad": 0.5,
-            "methods": {"svn": {"kappa_trans": 1.9, "kappa_rot": 2.2, "frames": 10, "skipped_frames": 0,
-                                "wrong_mode_frames": 0, "coverage_raw_trans": 0.7, "coverage_raw_rot": None}},
-            "unfitted": {"pf": "collapsed"}, "results": ["a"]}
-
-
-def _set(doc: dict, dotted: str, value: object) -> dict:
-    *head, last = dotted.split(".")
-    d = doc
-    for k in head:
-        d = d[k]
-    if value is _DELETE:
-        del d[last]
-    else:
-        d[last] = value
-    return doc
-
-
-_DELETE = object()
-
-
-@pytest.mark.parametrize(("field", "value", "column", "match"), [
-    ("format", "pinpoint-noise", "format", "must be 'pinpoint-spread-scale'"),
-    ("format", _DELETE, "format", "must be"),
-    ("version", 2, "version", "unsupported version"),
-    ("version", True, "version", "unsupported version"),
-    ("level", 1.5, "level", "must lie in"),
-    ("level", "0.95", "level", "must be a number"),
-    ("level", _DELETE, "level", "missing required key"),
-    ("mode_gate_rad", -0.1, "mode_gate_rad", "must lie in"),
-    ("mode_gate_rad", 4.0, "mode_gate_rad", "must lie in"),
-    ("methods", {}, "methods", "non-empty object"),
-    ("methods", [1], "methods", "non-empty object"),
-    ("methods.svn", 3, "methods.svn", "must be an object"),
-    ("methods.svn.kappa_trans", -1.0, "methods.svn.kappa_trans", "must be positive"),
-    ("methods.svn.kappa_trans", 0.0, "methods.svn.kappa_trans", "must be positive"),
-    ("methods.svn.kappa_rot", _DELETE, "methods.svn.kappa_rot", "missing required key"),
-    ("methods.svn.kappa_rot", None, "methods.svn.kappa_rot", "must be a number"),
-    ("methods.svn.kappa_rot", True, "methods.svn.kappa_rot", "must be a number"),
-    ("methods.svn.kappa_rot", 1e400, "methods.svn.kappa_rot", "must be finite"),
-    ("methods.svn.frames", -3, "methods.svn.frames", "non-negative integer"),
-    ("methods.svn.frames", 2.5, "methods.svn.frames", "non-negative integer"),
-    ("methods.svn.coverage_raw_trans", 1.2, "methods.svn.coverage_raw_trans", "must lie in"),
-    ("results", "a", "results", "list of strings"),
-    ("unfitted", {"pf": 3}, "unfitted", "method -> reason"),
-    ("unfitted", {"svn": "x"}, "unfitted.svn", "both fitted and unfitted"),
-])
-def test_reader_names_the_bad_field(tmp_path: Path, field: str, value: object, column: str, match: str) -> None:
-    path = tmp_path / "scale.json"
-    path.write_text(json.dumps(_set(_valid_doc(), field, value)))
-    with pytest.raises(InputError, match=match) as exc:
-        SpreadScale.load(path)
-    assert exc.value.column == column and exc.value.file == str(path)
-    assert "\n" not in str(exc.value)
-
-
-@pytest.mark.parametrize("text", ["", "{", "[1, 2]", '"x"', "null", "{\"format\": NaN}", "\xff"])
-def test_reader_refuses_malformed_json(tmp_path: Path, text: str) -> None:
-    path = tmp_path / "scale.json"
-    path.write_text(text, encoding="latin-1")
-    with pytest.raises(InputError) as exc:
-        SpreadScale.load(path)
-    assert exc.value.file == str(path)
-
-
-def test_reader_refuses_nan_and_infinity_literals(tmp_path: Path) -> None:
-    for literal, column in (("NaN", "kappa_trans"), ("Infinity", "kappa_rot"), ("-Infinity", "kappa_trans")):
-        path = tmp_path / "scale.json"
-        path.write_text(json.dumps(_valid_doc()).replace('"kappa_trans": 1.9' if column == "kappa_trans"
-                                                         else '"kappa_rot": 2.2', f'"{column}": {literal}'))
-        with pytest.raises(InputError, match="must be finite") as exc:
-            SpreadScale.load(path)
-        assert exc.value.column == f"methods.svn.{column}"
-
-
-_JSON = st.recursive(
-    st.none() | st.booleans() | st.integers(-5, 10**20) | st.floats(allow_nan=True, allow_infinity=True)
-    | st.text(max_size=8),
-    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4),
-    max_leaves=12,
-)
-_FIELDS = ["format", "version", "level", "mode_gate_rad", "methods", "methods.svn", "methods.svn.kappa_trans",
-           "methods.svn.kappa_rot", "methods.svn.frames", "methods.svn.skipped_frames",
-           "methods.svn.coverage_raw_rot", "unfitted", "results"]
-
-
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(field=st.sampled_from(_FIELDS), value=_JSON)
-def test_reader_fuzz_only_input_errors(tmp_path: Path, field: str, value: object) -> None:
-    """Any value in any field either loads into a valid scale or raises one InputError; never another exception."""
-    path = tmp_path / "fuzz.json"
-    path.write_text(json.dumps(_set(_valid_doc(), field, value)))
-    try:
-        scale = SpreadScale.load(path)
-    except InputError as exc:
-        assert "\n" not in str(exc)
-        return
-    for s in scale.methods.values():
-        assert math.isfinite(s.kappa_trans) and s.kappa_trans > 0
-        assert math.isfinite(s.kappa_rot) and s.kappa_rot > 0
-    assert 0 < scale.level < 1 and 0 < scale.mode_gate_rad <= math.pi
-
-
 # ----------------------------------------------------------------------------- the command line
 
 
@@ -343,8 +230,49 @@ def test_cli_calibrate_spread_and_evaluate_with_it(data, tmp_path: Path, capsys:
     assert float(row["coverage_trans"]) >= 0.95 * (F - 2) / (F - 1)
 
     bad = tmp_path / "bad.json"
-    bad.write_text(json.dumps(_set(_valid_doc(), "methods.svn.kappa_rot", -2.0)))
+    doc = json.loads(out.read_text())
+    doc["methods"]["svn"]["kappa_rot"] = -2.0
+    bad.write_text(json.dumps(doc))
     assert main(["evaluate", str(results["svn"]), "--out", str(tmp_path / "e2"), "--spread-scale", str(bad)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "methods.svn.kappa_rot" in err and "must be positive" in err
     assert main(["calibrate-spread", str(tmp_path / "missing"), "--out", str(tmp_path / "s2.json")]) == 2
+
+
+def test_cli_track_with_a_spread_scale_writes_scaled_q95_and_records_it(data, tmp_path: Path,  # noqa: ANN001
+                                                                        capsys: pytest.CaptureFixture) -> None:
+    rec, _, _ = data
+    scale = tmp_path / "scale.json"
+    SpreadScale(methods={"map": MethodScale(2.5, 3.5)}).save(scale)
+    raw, scaled = tmp_path / "raw", tmp_path / "scaled"
+    args = ["track", str(rec.root), "--method", "map"]
+    assert main([*args, "--out", str(raw)]) == 0
+    assert main([*args, "--spread-scale", str(scale), "--out", str(scaled)]) == 0
+    a, b = read_result(raw), read_result(scaled)
+    np.testing.assert_array_equal(b.cam_T_needle, a.cam_T_needle)  # the estimates do not move
+    np.testing.assert_array_equal(b.q95_trans_m, 2.5 * a.q95_trans_m)
+    np.testing.assert_array_equal(b.q95_rot_rad, 3.5 * a.q95_rot_rad)
+    assert b.info["settings"]["spread_scale"] == {"file": str(scale.resolve()), "kappa_trans": 2.5, "kappa_rot": 3.5}
+    assert "spread_scale" not in a.info["settings"]
+    assert recorded_scale(b.info["settings"], b.root / "result.json") == (2.5, 3.5)
+    capsys.readouterr()
+
+    # no double scaling, no fit on scaled bounds, no method without a factor
+    assert main(["evaluate", str(scaled), "--spread-scale", str(scale), "--out", str(tmp_path / "e1")]) == 2
+    assert "already scaled" in capsys.readouterr().err
+    assert main(["calibrate-spread", str(scaled), "--out", str(tmp_path / "s.json")]) == 2
+    assert "settings.spread_scale" in capsys.readouterr().err
+    assert main(["track", str(rec.root), "--method", "svn", "--spread-scale", str(scale),
+                 "--out", str(tmp_path / "svn")]) == 2
+    assert "no scale for method 'svn'" in capsys.readouterr().err
+
+    # evaluated as tracked: the recorded factors and the raw coverage (of q95 / kappa) in the row
+    assert main(["evaluate", str(raw), str(scaled), "--out", str(tmp_path / "e2")]) == 0
+    assert "the factors recorded when tracked" in capsys.readouterr().out
+    with open(tmp_path / "e2" / "summary.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [float(r["spread_kappa_trans"]) for r in rows] == [1.0, 2.5]
+    assert rows[1]["coverage_raw_trans"] == rows[0]["coverage_trans"] == rows[0]["coverage_raw_trans"]
+    assert rows[1]["coverage_raw_rot"] == rows[0]["coverage_rot"]
+
+

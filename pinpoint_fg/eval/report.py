@@ -58,7 +58,7 @@ from pinpoint_fg.eval.modes import (
     reference_rates,
     truth_kept,
 )
-from pinpoint_fg.eval.spread_calibration import SpreadScale, coverage, scaled_result
+from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
@@ -66,6 +66,7 @@ from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.posterior.bimodality import assess_bimodality, systematic_resample, tangent_at_map
+from pinpoint_fg.posterior.spread_scale import SpreadScale, recorded_scale
 
 #: The ablation matrix of the paper's Table III: (variant name, method, disabled switches, title).
 ABLATION_VARIANTS: tuple[tuple[str, str, tuple[str, ...], str], ...] = (
@@ -502,10 +503,9 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     return "\n".join(lines)
 
 
-def coverage_text(evals: Sequence[ResultEvaluation], scale: SpreadScale) -> str:
-    """q95 coverage per result before and after the spread scale (rows need ``coverage_raw_*``)."""
-    src = scale.source or "the given spread scale"
-    lines = [f"q95 coverage (share of frames whose error is within q95), raw -> scaled by {src}:",
+def coverage_text(evals: Sequence[ResultEvaluation], source: str) -> str:
+    """q95 coverage per result before and after the spread scale ``source`` (rows need ``coverage_raw_*``)."""
+    lines = [f"q95 coverage (share of frames whose error is within q95), raw -> scaled by {source}:",
              "recording  method  kappa t/r  raw cover t/r  scaled cover t/r"]
     for ev in evals:
         r = ev.row
@@ -652,10 +652,12 @@ def evaluate_results(
     ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
     bimodal verdicts of the results of the same recording; without it, the first ``mht`` result of
     each recording among ``results`` is used.
-    ``spread_scale`` (:mod:`pinpoint_fg.eval.spread_calibration`): every result's q95 columns are multiplied
+    ``spread_scale`` (:mod:`pinpoint_fg.posterior.spread_scale`): every result's q95 columns are multiplied
     by its method's factors before any metric or figure uses them (the files are not changed); the rows gain
     ``spread_kappa_trans`` / ``_rot`` and the raw coverage ``coverage_raw_trans`` / ``_rot``, and the text a
-    coverage table raw vs scaled.
+    coverage table raw vs scaled. A result whose q95 were scaled when tracked (``settings.spread_scale``) is
+    refused with ``spread_scale`` (no double scaling); without it, its recorded factors fill those columns
+    (and the raw coverage is that of ``q95 / kappa``).
     """
     results = expand_result_dirs(results)
     if not results:
@@ -666,12 +668,21 @@ def evaluate_results(
     given = read_recording(recording) if recording is not None else None
     cache: dict[Path, Recording] = {}
     loaded: list[tuple[Result, Recording, MeasurementModel, tuple]] = []
+    kappas: list[tuple[float, float] | None] = []  # the factor each result's q95 are scaled by, None: raw
     raw_q95: list[tuple[np.ndarray, np.ndarray]] = []
     for p in results:
         res = read_result(p)
-        raw_q95.append((res.q95_trans_m, res.q95_rot_rad))
+        recorded = recorded_scale(_settings_of(res), res.root / "result.json")
+        if recorded is not None and spread_scale is not None:
+            raise InputError("its q95 were already scaled when it was tracked (track --spread-scale); evaluate "
+                             "it without --spread-scale", file=res.root / "result.json", column="settings.spread_scale")
+        kt, kr = recorded if recorded is not None else (1.0, 1.0)
+        raw_q95.append((res.q95_trans_m / kt, res.q95_rot_rad / kr))  # exact when not scaled at tracking time
         if spread_scale is not None:
+            s = spread_scale.for_method(res.method)
+            recorded = (s.kappa_trans, s.kappa_rot)
             res = scaled_result(res, spread_scale)
+        kappas.append(recorded)
         rec = _recording_for(res, given, cache)
         noise, noise_key = _noise_of(res)
         disabled = _disabled_of(res)
@@ -724,13 +735,13 @@ def evaluate_results(
         evals.append(_evaluate_one(res, rec, analyses[key], variant, label, res_modes, refs.get(rec.info.name)))
 
     text_scaled = ""
-    if spread_scale is not None:
-        for ev, (qt, qr) in zip(evals, raw_q95, strict=True):
-            s = spread_scale.for_method(ev.method)
-            ev.row["spread_kappa_trans"], ev.row["spread_kappa_rot"] = s.kappa_trans, s.kappa_rot
+    if any(k is not None for k in kappas):
+        for ev, k, (qt, qr) in zip(evals, kappas, raw_q95, strict=True):
+            ev.row["spread_kappa_trans"], ev.row["spread_kappa_rot"] = k if k is not None else (1.0, 1.0)
             ev.row["coverage_raw_trans"] = coverage(np.where(ev.has_gt, ev.errors.trans_m, np.nan), qt)
             ev.row["coverage_raw_rot"] = coverage(np.where(ev.has_gt, ev.errors.rot_rad, np.nan), qr)
-        text_scaled = "\n\n" + coverage_text(evals, spread_scale)
+        src = spread_scale.source if spread_scale is not None else None
+        text_scaled = "\n\n" + coverage_text(evals, src or "the factors recorded when tracked")
     files = [_write_summary(evals, out / "summary.csv")]
     t2, t3, tm = table_ii(evals), table_iii(evals), table_multimodal(evals)
     md = ["# Evaluation", "", "## Tracking comparison (Table II)", "", t2, "", "## Multimodality", "", tm,

@@ -134,7 +134,7 @@ def _cmd_calibrate_spread(args: argparse.Namespace) -> int:
 
     from pinpoint_fg.eval.spread_calibration import fit_spread_scale
     from pinpoint_fg.io.outdir import prepare_output_file
-    from pinpoint_fg.posterior.spread_scale import format_scale
+    from pinpoint_fg.io.spread_scale import format_scale
 
     prepare_output_file(args.out, args.overwrite, "spread scale")
     scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg))

@@ -25,10 +25,10 @@ from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.writer import ResultWriter
+from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.offload import Offload, bimodality_verdict, to_frame_estimate  # noqa: F401 - track's public names
-from pinpoint_fg.posterior.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
@@ -130,7 +130,7 @@ def track_recording(
     uses 1; the worker is spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults.
-    ``spread_scale``: a file of ``calibrate-spread`` (:mod:`pinpoint_fg.posterior.spread_scale`); the q95
+    ``spread_scale``: a file of ``calibrate-spread`` (:mod:`pinpoint_fg.io.spread_scale`); the q95
     columns written are the tracker's bounds times the method's factors, and ``result.json``'s
     ``settings.spread_scale`` records the file and the factors (the tracker itself, its poses and particles
     are not affected). A method the file has no factor for is refused before tracking.
@@ -162,7 +162,7 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
            offload: Offload, scale: dict | None = None) -> Path:
     """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started.
 
-    ``scale``: :func:`~pinpoint_fg.posterior.spread_scale.settings_entry` of the spread scale, or None.
+    ``scale``: :func:`~pinpoint_fg.io.spread_scale.settings_entry` of the spread scale, or None.
     """
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None

@@ -19,7 +19,7 @@ from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.io.result.writer import ResultWriter
-from pinpoint_fg.posterior.spread_scale import MethodScale, SpreadScale, recorded_scale
+from pinpoint_fg.io.spread_scale import MethodScale, SpreadScale, recorded_scale
 from pinpoint_fg.sim.scenarios import simulate
 
 F = 40

@@ -63,10 +63,10 @@ from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
+from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.posterior.bimodality import assess_bimodality, systematic_resample, tangent_at_map
-from pinpoint_fg.posterior.spread_scale import SpreadScale, recorded_scale
 
 #: The ablation matrix of the paper's Table III: (variant name, method, disabled switches, title).
 ABLATION_VARIANTS: tuple[tuple[str, str, tuple[str, ...], str], ...] = (
@@ -652,7 +652,7 @@ def evaluate_results(
     ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
     bimodal verdicts of the results of the same recording; without it, the first ``mht`` result of
     each recording among ``results`` is used.
-    ``spread_scale`` (:mod:`pinpoint_fg.posterior.spread_scale`): every result's q95 columns are multiplied
+    ``spread_scale`` (:mod:`pinpoint_fg.io.spread_scale`): every result's q95 columns are multiplied
     by its method's factors before any metric or figure uses them (the files are not changed); the rows gain
     ``spread_kappa_trans`` / ``_rot`` and the raw coverage ``coverage_raw_trans`` / ``_rot``, and the text a
     coverage table raw vs scaled. A result whose q95 were scaled when tracked (``settings.spread_scale``) is

@@ -17,7 +17,7 @@ smallest ratio that at least 95 % of the frames do not exceed). Then ``kappa · 
 training frames (``>= 95 %``; exactly the smallest such share the data allow). The scale never moves a
 pose estimate, particles, mode weights or ``modes.csv`` covariances; it rescales the two q95 columns
 when results are evaluated with it (``evaluate --spread-scale``) or as ``track --spread-scale`` writes them.
-The factors and their file are :mod:`pinpoint_fg.posterior.spread_scale`.
+The factors and their file are :mod:`pinpoint_fg.io.spread_scale`.
 
 Decisions the literature leaves to the user:
 
@@ -63,7 +63,7 @@ from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
 from pinpoint_fg.io.result.schema import Result
-from pinpoint_fg.posterior.spread_scale import LEVEL, MODE_GATE_RAD, MethodScale, SpreadScale, recorded_scale
+from pinpoint_fg.io.spread_scale import LEVEL, MODE_GATE_RAD, MethodScale, SpreadScale, recorded_scale
 
 _BOUNDARY_NUDGE = 1e-12
 """Relative increase of the fitted quantile so that ``kappa · q95`` still covers the boundary frame."""

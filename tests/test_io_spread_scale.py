@@ -1,4 +1,4 @@
-"""The spread-scale file (posterior/spread_scale.py): its reader names every bad field; the tracked-scale entry."""
+"""The spread-scale file (io/spread_scale.py): its reader names every bad field; the tracked-scale entry."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.posterior.spread_scale import MethodScale, SpreadScale, recorded_scale, settings_entry
+from pinpoint_fg.io.spread_scale import MethodScale, SpreadScale, recorded_scale, settings_entry
 
 
 def valid_doc() -> dict:

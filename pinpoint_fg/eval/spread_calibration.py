@@ -84,7 +84,7 @@ def scale_quantile(err: np.ndarray, q95: np.ndarray, level: float = LEVEL, what:
     if err.shape != q.shape:
         raise InputError(f"{err.size} errors but {q.size} q95 values", column=what)
     if err.size == 0:
-        raise InputError("no frame with ground truth and a finite q95 to fit on", column=what)
+        raise InputError("no frame to fit on (with ground truth, a finite q95 and within the mode gate)", column=what)
     if not (np.all(np.isfinite(err)) and np.all(np.isfinite(q))) or np.any(err < 0) or np.any(q < 0):
         raise InputError("errors and q95 must be finite and non-negative", column=what)
     if not 0.0 < level < 1.0:

@@ -100,6 +100,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         verdict_workers=1,  # bimodality verdicts in a worker process, alongside the tracker
         robust=args.robust,
+        spread_scale=args.spread_scale,
     )
     print(f"wrote {out}")
     return 0
@@ -122,8 +123,24 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_dir
 
     prepare_output_dir(args.out, args.overwrite, "evaluation")
-    summary = evaluate(args.results, recording=args.recording, out=args.out, reference=args.reference)
+    summary = evaluate(args.results, recording=args.recording, out=args.out, reference=args.reference,
+                       spread_scale=args.spread_scale)
     print(summary)
+    return 0
+
+
+def _cmd_calibrate_spread(args: argparse.Namespace) -> int:
+    import math
+
+    from pinpoint_fg.eval.spread_calibration import fit_spread_scale
+    from pinpoint_fg.io.outdir import prepare_output_file
+    from pinpoint_fg.io.spread_scale import format_scale
+
+    prepare_output_file(args.out, args.overwrite, "spread scale")
+    scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg))
+    scale.save(args.out)
+    print(format_scale(scale))
+    print(f"wrote {args.out}")
     return 0
 
 
@@ -320,6 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none); "
                         "'none' switches all off; default: the noise file's or the built-in defaults")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
+                   help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_track)
@@ -337,7 +356,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--reference", type=Path, default=None,
                    help="a multi-hypothesis (MHT) result of the same recording whose modes judge the bimodal verdicts")
+    s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
+                   help="scale each result's q95 by its method's factors from `calibrate-spread` (files unchanged)")
     s.set_defaults(func=_cmd_evaluate)
+
+    s = sub.add_parser("calibrate-spread",
+                       help="fit per-method q95 scale factors (95 %% coverage) on results with ground truth")
+    s.add_argument("results", type=Path, nargs="+", help="result directories, or a `batch` output directory")
+    s.add_argument("--out", type=Path, required=True, help="the spread-scale JSON file to write")
+    s.add_argument("--mode-gate-deg", type=float, default=30.0,
+                   help="leave out training frames whose MAP rotation error exceeds this (another mode); "
+                        "180 keeps every frame (default 30)")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    s.set_defaults(func=_cmd_calibrate_spread)
 
     s = sub.add_parser("ablate", help="the ablation matrix of the paper's Table III")
     s.add_argument("runs", type=Path, nargs="+")

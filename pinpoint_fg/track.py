@@ -13,16 +13,19 @@ from __future__ import annotations
 
 import sys
 from contextlib import AbstractContextManager, nullcontext
+from dataclasses import replace
 from pathlib import Path
 
 from tqdm import tqdm
 
 from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.writer import ResultWriter
+from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.offload import Offload, bimodality_verdict, to_frame_estimate  # noqa: F401 - track's public names
@@ -115,6 +118,7 @@ def track_recording(
     verdict_workers: int = 0,
     robust: dict[str, RobustLoss] | None = None,
     blas_threads: int | None = 1,
+    spread_scale: str | Path | None = None,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
@@ -126,6 +130,10 @@ def track_recording(
     uses 1; the worker is spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults.
+    ``spread_scale``: a file of ``calibrate-spread`` (:mod:`pinpoint_fg.io.spread_scale`); the q95
+    columns written are the tracker's bounds times the method's factors, and ``result.json``'s
+    ``settings.spread_scale`` records the file and the factors (the tracker itself, its poses and particles
+    are not affected). A method the file has no factor for is refused before tracking.
     ``blas_threads`` limits the BLAS / OpenMP thread pools while tracking (threadpoolctl; None: leave them).
     Default 1: a frame's matrices are small (6x6 blocks, N x M pixel products), so a second thread only
     spins; on the shared 2-core machine one thread made SVN's steps 2.3x, PF's and MAP's 1.2x faster.
@@ -134,11 +142,14 @@ def track_recording(
     differently (SVN's poses moved by <= 1.2e-15 m over a 150-frame run; PF, MAP, MHT unchanged).
     """
     out = prepare_output_dir(out, overwrite, "result")
+    scale = None
+    if spread_scale is not None:
+        scale = settings_entry(SpreadScale.load(spread_scale), method)  # refused before any work
     offload = Offload(verdict_workers, max_points)  # first: the observer starts up while we read
     failed = True
     try:
         out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
-                     robust, blas_threads, offload)
+                     robust, blas_threads, offload, scale)
         failed = False
     finally:
         offload.close(failed)
@@ -148,8 +159,11 @@ def track_recording(
 def _track(run: str | Path, method: str, out: Path, particles: int | None, window: int,
            noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
            max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
-           offload: Offload) -> Path:
-    """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started."""
+           offload: Offload, scale: dict | None = None) -> Path:
+    """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started.
+
+    ``scale``: :func:`~pinpoint_fg.io.spread_scale.settings_entry` of the spread scale, or None.
+    """
     recording = read_recording(run)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
     if robust is not None:
@@ -161,6 +175,14 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
         raise InputError("the recording has no frames", file=Path(run) / "frames.csv")
     settings = tracker.settings()
     settings["noise_file"] = None if noise_file is None else str(noise_file)
+    if scale is not None:
+        settings["spread_scale"] = scale
+
+    def scaled(row: Estimate) -> Estimate:
+        if scale is None:
+            return row
+        return replace(row, q95_trans_m=scale["kappa_trans"] * row.q95_trans_m,
+                       q95_rot_rad=scale["kappa_rot"] * row.q95_rot_rad)
     show = sys.stderr.isatty() if progress is None else bool(progress)
     with _thread_limit(blas_threads), ResultWriter(out, method, settings, recording.info.name,
                                                    str(Path(run).resolve()), weighted=(method in WEIGHTED_METHODS),
@@ -169,9 +191,9 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
                         unit="frame", total=len(frames), disable=not show):
             offload.submit(tracker.step(obs))
             for row in offload.ready():
-                writer.write(row)
+                writer.write(scaled(row))
         for row in offload.ready(wait=True):
-            writer.write(row)
+            writer.write(scaled(row))
         final = getattr(tracker, "final_smoothed", None)
         if config.window > 1 and callable(final):
             for f, t, T in final():

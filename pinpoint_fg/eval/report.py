@@ -60,10 +60,12 @@ from pinpoint_fg.eval.modes import (
     reference_rates,
     truth_kept,
 )
+from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
+from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
 from pinpoint_fg.likelihood import MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.posterior.bimodality import assess_bimodality, systematic_resample, tangent_at_map
@@ -562,6 +564,18 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     return "\n".join(lines)
 
 
+def coverage_text(evals: Sequence[ResultEvaluation], source: str) -> str:
+    """q95 coverage per result before and after the spread scale ``source`` (rows need ``coverage_raw_*``)."""
+    lines = [f"q95 coverage (share of frames whose error is within q95), raw -> scaled by {source}:",
+             "recording  method  kappa t/r  raw cover t/r  scaled cover t/r"]
+    for ev in evals:
+        r = ev.row
+        lines.append(f"  {r['recording']}  {ev.label}  {r['spread_kappa_trans']:.2f}/{r['spread_kappa_rot']:.2f}  "
+                     f"{_pct(r['coverage_raw_trans'])}/{_pct(r['coverage_raw_rot'])}  "
+                     f"{_pct(r['coverage_trans'])}/{_pct(r['coverage_rot'])}")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------------------------------
 # figures
 
@@ -688,6 +702,7 @@ def evaluate_results(
     config: AmbiguityConfig | None = None,
     progress: Callable[[str], None] | None = None,
     reference: Path | str | None = None,
+    spread_scale: SpreadScale | None = None,
 ) -> EvaluationReport:
     """Evaluate result directories (module docstring); returns everything computed.
 
@@ -698,6 +713,12 @@ def evaluate_results(
     ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
     bimodal verdicts of the results of the same recording; without it, the first ``mht`` result of
     each recording among ``results`` is used.
+    ``spread_scale`` (:mod:`pinpoint_fg.io.spread_scale`): every result's q95 columns are multiplied
+    by its method's factors before any metric or figure uses them (the files are not changed); the rows gain
+    ``spread_kappa_trans`` / ``_rot`` and the raw coverage ``coverage_raw_trans`` / ``_rot``, and the text a
+    coverage table raw vs scaled. A result whose q95 were scaled when tracked (``settings.spread_scale``) is
+    refused with ``spread_scale`` (no double scaling); without it, its recorded factors fill those columns
+    (and the raw coverage is that of ``q95 / kappa``).
     """
     results = expand_result_dirs(results)
     if not results:
@@ -708,8 +729,21 @@ def evaluate_results(
     given = read_recording(recording) if recording is not None else None
     cache: dict[Path, Recording] = {}
     loaded: list[tuple[Result, Recording, MeasurementModel, tuple]] = []
+    kappas: list[tuple[float, float] | None] = []  # the factor each result's q95 are scaled by, None: raw
+    raw_q95: list[tuple[np.ndarray, np.ndarray]] = []
     for p in results:
         res = read_result(p)
+        recorded = recorded_scale(_settings_of(res), res.root / "result.json")
+        if recorded is not None and spread_scale is not None:
+            raise InputError("its q95 were already scaled when it was tracked (track --spread-scale); evaluate "
+                             "it without --spread-scale", file=res.root / "result.json", column="settings.spread_scale")
+        kt, kr = recorded if recorded is not None else (1.0, 1.0)
+        raw_q95.append((res.q95_trans_m / kt, res.q95_rot_rad / kr))  # exact when not scaled at tracking time
+        if spread_scale is not None:
+            s = spread_scale.for_method(res.method)
+            recorded = (s.kappa_trans, s.kappa_rot)
+            res = scaled_result(res, spread_scale)
+        kappas.append(recorded)
         rec = _recording_for(res, given, cache)
         noise, noise_key = _noise_of(res)
         disabled = _disabled_of(res)
@@ -761,6 +795,14 @@ def evaluate_results(
         say(f"metrics: {label} on {rec.info.name}")
         evals.append(_evaluate_one(res, rec, analyses[key], variant, label, res_modes, refs.get(rec.info.name)))
 
+    text_scaled = ""
+    if any(k is not None for k in kappas):
+        for ev, k, (qt, qr) in zip(evals, kappas, raw_q95, strict=True):
+            ev.row["spread_kappa_trans"], ev.row["spread_kappa_rot"] = k if k is not None else (1.0, 1.0)
+            ev.row["coverage_raw_trans"] = coverage(np.where(ev.has_gt, ev.errors.trans_m, np.nan), qt)
+            ev.row["coverage_raw_rot"] = coverage(np.where(ev.has_gt, ev.errors.rot_rad, np.nan), qr)
+        src = spread_scale.source if spread_scale is not None else None
+        text_scaled = "\n\n" + coverage_text(evals, src or "the factors recorded when tracked")
     files = [_write_summary(evals, out / "summary.csv")]
     t2, t3, tm = table_ii(evals), table_iii(evals), table_multimodal(evals)
     md = ["# Evaluation", "", "## Tracking comparison (Table II)", "", t2, "", "## Multimodality", "", tm,
@@ -775,11 +817,16 @@ def evaluate_results(
     if figures:
         say("figures")
         files += _figures(evals, out)
-    text = comparison_text(evals)
+    text = comparison_text(evals) + text_scaled
     return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)
 
 
 def evaluate(results: list[Path], recording: Path | None = None, out: Path = Path("evaluation"),
-             reference: Path | None = None) -> str:
-    """Evaluate results, write summary.csv, tables.md and figures to ``out``; return the printable summary."""
-    return evaluate_results(results, recording, out, reference=reference).text
+             reference: Path | None = None, spread_scale: Path | None = None) -> str:
+    """Evaluate results, write summary.csv, tables.md and figures to ``out``; return the printable summary.
+
+    ``spread_scale``: a file of ``calibrate-spread`` whose factors scale the results' q95 (see
+    :func:`evaluate_results`); it is read before anything is computed.
+    """
+    scale = SpreadScale.load(spread_scale) if spread_scale is not None else None
+    return evaluate_results(results, recording, out, reference=reference, spread_scale=scale).text

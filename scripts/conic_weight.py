@@ -15,6 +15,11 @@ Usage (one thread)::
     .venv/bin/python scripts/conic_weight.py correlation RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py sweep C svn,map RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py terms RUN RESULT_DIR FIRST LAST STEP
+    .venv/bin/python scripts/conic_weight.py trail C RUN FIRST LAST
+
+``trail`` tracks RUN with SVN at weight ``1 / c^2`` and prints, for frames FIRST..LAST-1, how far (nats of
+log-posterior) the best particle within 2 mm / 10 deg of the truth trails the best particle overall, and
+how many particles were pruned (a trailing mode is pruned once its evidence is 30 nats behind).
 """
 
 from __future__ import annotations
@@ -108,7 +113,24 @@ def terms(run: Path, result: Path, frames: range) -> None:
         print(f"frame {k:3d} (truth / MAP, nats): " + " | ".join(cells))
 
 
+def trail(c: float, run: Path, first: int, last: int) -> None:
+    rec = read_recording(run)
+    tracker = make_tracker("svn", tracker_config(rec, "svn", noise=conic_scaled(c), disable=suggested_disable(run),
+                                                 seed=0))
+    for k, frame in enumerate(rec.frames[:last]):
+        est = tracker.step(observe_frame(rec, frame))
+        if k < first or frame.cam_T_needle_gt is None:
+            continue
+        near = near_truth(est.particles, frame.cam_T_needle_gt)
+        gap = float(np.max(est.log_posterior) - np.max(est.log_posterior[near])) if near.any() else float("nan")
+        print(f"c={c:<4} {run.name} frame {k:3d}: particles near the truth {int(near.sum()):2d}, best of them "
+              f"{gap:6.1f} nats behind the best; pruned {int(est.extra.get('pruned', 0))}")
+
+
 if __name__ == "__main__":
+    if len(sys.argv) == 6 and sys.argv[1] == "trail":
+        trail(float(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]))
+        sys.exit(0)
     if len(sys.argv) == 7 and sys.argv[1] == "terms":
         terms(Path(sys.argv[2]), Path(sys.argv[3]), range(int(sys.argv[4]), int(sys.argv[5]), int(sys.argv[6])))
         sys.exit(0)

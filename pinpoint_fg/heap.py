@@ -7,7 +7,7 @@ is a fresh ``mmap`` and a large free at the top of the heap is trimmed, so the n
 new pages: measured ~770 minor page faults per 50-pose conic evaluation, about 2 ms of its 2.5 ms, and
 a run of SVN on normal-01 took ~120k faults (36k with the settings below; total CPU -15 %).
 
-:func:`keep_freed_memory` sets a fixed mmap threshold (64 MiB, else 32 MiB: blocks below it come from the heap) and
+:func:`keep_freed_memory` sets a fixed mmap threshold (32 MiB: blocks below it come from the heap) and
 trim threshold (128 MiB of free memory at the top of the heap are kept), which also turns off glibc's
 dynamic adjustment. Only memory management changes: every number a tracker computes is bitwise the
 same (``scripts/step_outputs.py``). Decisions: process-wide and idempotent, called when a tracker is
@@ -25,9 +25,8 @@ import os
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
 
-#: Blocks below this many bytes are served from the heap, the first value glibc accepts (older versions cap it at
-#: 32 MiB on 64-bit; 64 MiB also keeps the first frame's seeding product, 1440 poses x 200 pixels = 48 MB, in it).
-MMAP_THRESHOLD_BYTES = (64 << 20, 32 << 20)
+#: Blocks below this many bytes are served from the heap (glibc caps the value at 32 MiB on 64-bit).
+MMAP_THRESHOLD_BYTES = 32 << 20
 #: Free memory at the top of the heap up to this many bytes is kept rather than returned.
 TRIM_THRESHOLD_BYTES = 128 << 20
 
@@ -48,7 +47,7 @@ def keep_freed_memory() -> bool:
         if mallopt is not None:
             mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
             mallopt.restype = ctypes.c_int
-            mmap_ok = any(mallopt(M_MMAP_THRESHOLD, v) for v in MMAP_THRESHOLD_BYTES)  # stops at the first accepted
-            ok = mmap_ok and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+            ok = bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) & bool(
+                mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
     _applied[0] = ok
     return ok

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from pinpoint_fg.estimate import Estimate
-from pinpoint_fg.heap import keep_freed_memory
 from pinpoint_fg.kinematics_check import KinematicsCheckConfig, KinematicsMonitor, MotionInput
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.noise import format_robust
@@ -81,7 +80,6 @@ class Tracker(abc.ABC):
     method: str = "base"
 
     def __init__(self, config: TrackerConfig) -> None:
-        keep_freed_memory()  # large temporaries reuse the heap instead of page-faulting (pinpoint_fg.heap)
         self.config = config
         self.rng = np.random.default_rng(config.seed)
         self.kinematics = KinematicsMonitor(config.noise.process_cov, config.kinematics)

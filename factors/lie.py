@@ -175,14 +175,15 @@ def _jr_inv_coefficient(w: np.ndarray) -> np.ndarray:
                  lambda: 1.0 / (ths * ths) - 1.0 / (2.0 * ths * np.tan(ths / 2.0)))
 
 
-def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
+def so3_right_jacobian_inv(w: np.ndarray, coefficient: np.ndarray | None = None) -> np.ndarray:
     """Inverse right Jacobian of SO(3): ``d Log(R Exp(d)) / d d`` at ``d = 0`` for ``R = Exp(w)``.
 
     ``Jr^-1(w) = I + 1/2 [w]x + (1/theta^2 - cot(theta/2) / (2 theta)) [w]x^2``; the coefficient
-    is finite at theta = pi (where cot(pi/2) = 0).
+    is finite at theta = pi (where cot(pi/2) = 0). ``coefficient``: :func:`_jr_inv_coefficient` of this
+    ``w`` when the caller has it already (:func:`se3_log_right_jacobian_inv`).
     """
     w = np.asarray(w, dtype=float)
-    c = _jr_inv_coefficient(w)
+    c = _jr_inv_coefficient(w) if coefficient is None else coefficient
     W = skew(w)
     return np.eye(3) + 0.5 * W + c[..., None, None] * (W @ W)
 
@@ -264,6 +265,11 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     ``v = J_l(w)^-1 t = J_r(w)^-1 R^T t`` with :func:`so3_right_jacobian_inv`'s series applied as cross
     products, ``u + 1/2 w x u + c w x (w x u)`` (no 3x3 matrices built).
     """
+    return _se3_log_coefficient(T)[0]
+
+
+def _se3_log_coefficient(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`se3_log` and the :func:`_jr_inv_coefficient` of its rotation part (computed on the way)."""
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]
     w = so3_log(R)
@@ -271,7 +277,17 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     u = (T[..., None, :3, 3] @ R)[..., 0, :]  # R^T t
     wu = cross(w, u)
     v = u + 0.5 * wu + c[..., None] * cross(w, wu)
-    return np.concatenate([w, v], axis=-1)
+    return np.concatenate([w, v], axis=-1), c
+
+
+def se3_log_right_jacobian_inv(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``xi = se3_log(T)`` and ``se3_right_jacobian_inv(xi)``, bitwise, with their shared coefficient computed once.
+
+    ``Jr^-1`` of SO(3) needs ``1/theta^2 - cot(theta/2) / (2 theta)`` of ``xi``'s rotation part, which the
+    logarithm has just computed from the same values (the prior and motion residuals take both).
+    """
+    xi, c = _se3_log_coefficient(T)
+    return xi, se3_right_jacobian_inv(xi, coefficient=c)
 
 
 def se3_right_jacobian(xi: np.ndarray) -> np.ndarray:
@@ -286,15 +302,15 @@ def se3_right_jacobian(xi: np.ndarray) -> np.ndarray:
     return out
 
 
-def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
+def se3_right_jacobian_inv(xi: np.ndarray, coefficient: np.ndarray | None = None) -> np.ndarray:
     """Inverse right Jacobian of SE(3) (GTSAM's ``Pose3.LogmapDerivative`` at ``Exp(xi)``), ``(..., 6, 6)``.
 
     ``Log(Exp(xi) Exp(d)) ≈ xi + Jr^-1(xi) d``. Block form ``[[Ji, 0], [-Ji Q Ji, Ji]]`` with
-    ``Ji = Jr^-1`` of SO(3) and ``Q = Q_left(-omega, -v)``.
+    ``Ji = Jr^-1`` of SO(3) and ``Q = Q_left(-omega, -v)``. ``coefficient``: see :func:`so3_right_jacobian_inv`.
     """
     xi = np.asarray(xi, dtype=float)
     w, v = xi[..., :3], xi[..., 3:]
-    Ji = so3_right_jacobian_inv(w)
+    Ji = so3_right_jacobian_inv(w, coefficient)
     Q = _q_left(-w, -v)
     out = np.zeros(xi.shape[:-1] + (6, 6))
     out[..., :3, :3] = Ji

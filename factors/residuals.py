@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factors.lie import cross, se3_adjoint, se3_inverse, se3_log, se3_right_jacobian_inv, skew
+from factors.lie import cross, se3_adjoint, se3_inverse, se3_log, se3_log_right_jacobian_inv, skew
 
 #: Depths with |z| below this (metres) are clamped (keeping the sign) before dividing.
 MIN_DEPTH_M = 1e-6
@@ -50,6 +50,28 @@ def _skew_const(x: np.ndarray) -> np.ndarray:
     return out
 
 
+#: :func:`_unit_const`'s results by the vector's bytes (the grasp tangent, a frame's grasper axis).
+_UNIT_CONST: dict[bytes, np.ndarray] = {}
+
+
+def _unit_const(x: np.ndarray, last_axis: bool = False) -> np.ndarray:
+    """``x / np.linalg.norm(x)`` of one 3-vector, computed once per value (read-only; bounded memo).
+
+    ``last_axis``: ``x / np.linalg.norm(x, axis=-1, keepdims=True)`` instead (NumPy sums that norm
+    differently from the whole-array one: each form is kept where it was used, bit for bit).
+    """
+    x = np.asarray(x, dtype=float)
+    key = x.tobytes() + (b"a" if last_axis else b"")
+    out = _UNIT_CONST.get(key)
+    if out is None:
+        if len(_UNIT_CONST) > 256:  # a few per frame; bounded all the same
+            _UNIT_CONST.clear()
+        out = x / (np.linalg.norm(x, axis=-1, keepdims=True) if last_axis else np.linalg.norm(x))
+        out.flags.writeable = False
+        _UNIT_CONST[key] = out
+    return out
+
+
 def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
     """Promote ``(4, 4)`` to ``(1, 4, 4)``; check the shape and finiteness of a pose batch."""
     T = np.asarray(cam_T_needle, dtype=float)
@@ -68,7 +90,9 @@ def point_jacobian(cam_T_needle: np.ndarray, needle_p: np.ndarray) -> tuple[np.n
     R, t = T[:, :3, :3], T[:, :3, 3]
     X = np.asarray(needle_p, dtype=float)
     p = R @ X + t
-    J = np.concatenate([-R @ _skew_const(X), R], axis=2)
+    J = np.empty((T.shape[0], 3, 6))  # [-R [X]x, R] filled in place (np.concatenate's result, without its overhead)
+    J[:, :, :3] = -R @ _skew_const(X)
+    J[:, :, 3:] = R
     return p, J
 
 
@@ -167,7 +191,7 @@ def conic_residual(
     # Work in centred, scaled pixels x = P xh (P = [[s, 0, cu], [0, s, cv], [0, 0, 1]]) so every term
     # is O(1): f is unchanged, the image gradient scales by s, and s_px = s * f / |gh|.
     centre, sc, P, phi = _pixel_basis(pts)
-    Q = np.diag([1.0, 1.0, -(float(radius_m) ** 2)])
+    Q = _conic_q(radius_m)
     # Ch = P^T A^T Q A P (N, 3, 3), normalised (scale invariance again)
     AP = A @ P
     QAP = Q @ AP
@@ -176,11 +200,12 @@ def conic_residual(
     C = C * cn[:, None, None]
     if jacobian:
         # dh/dxi (N, 3, 6): d(R e_k) = -R [e_k]x omega, dt = R v
-        e = np.eye(3)
-        zero3 = np.zeros((N, 3, 3))
-        Dh1 = np.concatenate([-KR @ _skew_const(e[0]), zero3], axis=2)
-        Dh2 = np.concatenate([-KR @ _skew_const(e[1]), zero3], axis=2)
-        Dh3 = np.concatenate([zero3, KR], axis=2)
+        Dh1 = np.zeros((N, 3, 6))  # [-KR [e_k]x, 0] and [0, KR], filled in place
+        Dh1[:, :, :3] = -KR @ _SKEW_E[0]
+        Dh2 = np.zeros((N, 3, 6))
+        Dh2[:, :, :3] = -KR @ _SKEW_E[1]
+        Dh3 = np.zeros((N, 3, 6))
+        Dh3[:, :, 3:] = KR
         S1, S2, S3 = skew(h1), skew(h2), skew(h3)
         DA = np.stack([-S3 @ Dh2 + S2 @ Dh3, -S1 @ Dh3 + S3 @ Dh1, -S2 @ Dh1 + S1 @ Dh2], axis=1)  # (N, 3, 3, 6)
         DAd = np.moveaxis(DA * scale[:, None, None, None], 3, 1) @ P  # (N, 6, 3, 3): [n, d, row i, component k]
@@ -220,6 +245,27 @@ def conic_residual(
     J += tmp
     J += np.multiply(out[:, 1:, 2], (g2 * q)[:, None], out=tmp)
     return r, np.swapaxes(J, 1, 2)
+
+
+#: ``skew(e_0)``, ``skew(e_1)`` of the unit axes (:func:`conic_residual`'s dh/dxi), read-only.
+_SKEW_E = skew(np.eye(3)[:2])
+_SKEW_E.flags.writeable = False
+
+#: :func:`_conic_q`'s results by radius.
+_CONIC_Q: dict[float, np.ndarray] = {}
+
+
+def _conic_q(radius_m: float) -> np.ndarray:
+    """``Q = diag(1, 1, -r^2)`` of :func:`conic_residual`, built once per radius (read-only; bounded memo)."""
+    r = float(radius_m)
+    Q = _CONIC_Q.get(r)
+    if Q is None:
+        if len(_CONIC_Q) > 64:
+            _CONIC_Q.clear()
+        Q = np.diag([1.0, 1.0, -(r ** 2)])
+        Q.flags.writeable = False
+        _CONIC_Q[r] = Q
+    return Q
 
 
 #: The last backbone's pixel basis (:func:`_pixel_basis`): its pixels' bytes and the derived arrays (read-only).
@@ -268,15 +314,14 @@ def grasp_perpendicular_residual(
     poses evaluated in one batch).
     """
     T = as_pose_batch(cam_T_needle)
-    tg = np.asarray(needle_t_grasp, dtype=float)
-    tg = tg / np.linalg.norm(tg)
+    tg = _unit_const(needle_t_grasp)
     zg = np.asarray(cam_z_grasper, dtype=float)
-    zg = zg / np.linalg.norm(zg, axis=-1, keepdims=True)
+    zg = _unit_const(zg, last_axis=True) if zg.ndim == 1 else zg / np.linalg.norm(zg, axis=-1, keepdims=True)
     R = T[:, :3, :3]
     r = ((R @ tg) * zg).sum(axis=-1)
-    Jw = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ _skew_const(tg))
-    J = np.concatenate([Jw, np.zeros((T.shape[0], 3))], axis=1)
-    return r[:, None], J[:, None, :]
+    J = np.zeros((T.shape[0], 1, 6))  # [Jw, 0] filled in place
+    J[:, 0, :3] = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ _skew_const(tg))
+    return r[:, None], J
 
 
 def motion_residual(
@@ -295,10 +340,9 @@ def motion_residual(
     Tc = as_pose_batch(cam_T_cur)
     D = np.asarray(cam_delta, dtype=float)
     E = se3_inverse(D @ Tp) @ Tc
-    r = se3_log(E)
     if not jacobian:
-        return r, None, None
-    Jinv = se3_right_jacobian_inv(r)
+        return se3_log(E), None, None
+    r, Jinv = se3_log_right_jacobian_inv(E)
     J_cur = Jinv
     J_prev = -Jinv @ se3_adjoint(se3_inverse(E))
     return r, J_prev, J_cur
@@ -311,5 +355,4 @@ def pose_prior_residual(cam_T_needle: np.ndarray, cam_T_mean: np.ndarray) -> tup
     ``PriorFactorPose3`` uses an identity Jacobian instead; this one is exact.)
     """
     T = as_pose_batch(cam_T_needle)
-    r = se3_log(se3_inverse(np.asarray(cam_T_mean, dtype=float)) @ T)
-    return r, se3_right_jacobian_inv(r)
+    return se3_log_right_jacobian_inv(se3_inverse(np.asarray(cam_T_mean, dtype=float)) @ T)

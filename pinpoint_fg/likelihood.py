@@ -224,10 +224,8 @@ class FrameLikelihood:
         # a conic block is one pixel; the others are the whole term
         d = np.abs(e) if name == "conic" else np.sqrt(np.add.reduce(e * e, axis=1, keepdims=True))  # = norm
         loss = rl.loss(d).sum(axis=1)
-        sw = np.sqrt(rl.weight(d))
-        if name != "conic":
-            sw = np.broadcast_to(sw, e.shape)
-        elif J is not None:
+        sw = np.sqrt(rl.weight(d))  # (N, M) per conic pixel, else (N, 1): one weight for the term's d rows
+        if name == "conic" and J is not None:
             J *= sw[:, :, None]
             return loss, e * sw, J
         return loss, e * sw, (None if J is None else J * sw[:, :, None])

@@ -274,3 +274,91 @@ def test_sqrt_information_is_kept_per_covariance_value() -> None:
     assert np.array_equal(n.sqrt_information, ref)
     n.cov[:] = 4.0 * n.cov
     assert np.array_equal(n.sqrt_information, np.linalg.inv(np.linalg.cholesky(n.cov)))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_point_and_small_residuals_filled_in_place_equal_their_concatenated_forms(kind: str) -> None:
+    """point_jacobian, the grasp-perpendicularity Jacobian and the prior / motion residuals, bitwise their
+    earlier forms (np.concatenate, per-call normalisation, separate log and inverse right Jacobian)."""
+    from factors.lie import se3_inverse, se3_log, se3_right_jacobian_inv, skew
+
+    rng = np.random.default_rng(14)
+    for n in (1, 7, 60):
+        T = sample_poses(kind, n, rng)
+        R = T[:, :3, :3]
+        for X in (NEEDLE.tip_m, NEEDLE.grasp_m, rng.normal(size=3) * 0.01):
+            p, J = res.point_jacobian(T, X)
+            np.testing.assert_array_equal(p, R @ X + T[:, :3, 3])
+            np.testing.assert_array_equal(J, np.concatenate([-R @ skew(X), R], axis=2))
+        for z in (rng.normal(size=3), rng.normal(size=(n, 3))):
+            r, J = res.grasp_perpendicular_residual(T, NEEDLE.grasp_tangent, z)
+            tg = NEEDLE.grasp_tangent / np.linalg.norm(NEEDLE.grasp_tangent)
+            zg = z / np.linalg.norm(z, axis=-1, keepdims=True)
+            np.testing.assert_array_equal(r[:, 0], ((R @ tg) * zg).sum(axis=-1))
+            Jw = -np.einsum("i,nij->nj" if z.ndim == 1 else "ni,nij->nj", zg, R @ skew(tg))
+            np.testing.assert_array_equal(J, np.concatenate([Jw, np.zeros((n, 3))], axis=1)[:, None, :])
+        M = sample_poses(kind, n, rng)
+        r, J = res.pose_prior_residual(T, M)
+        r0 = se3_log(se3_inverse(M) @ T)
+        np.testing.assert_array_equal(r, r0)
+        np.testing.assert_array_equal(J, se3_right_jacobian_inv(r0))
+        D = se3_exp(rng.normal(size=(n, 6)) * 0.1)
+        r, Jp, Jc = res.motion_residual(M, T, D)
+        E = se3_inverse(D @ M) @ T
+        r0 = se3_log(E)
+        np.testing.assert_array_equal(r, r0)
+        np.testing.assert_array_equal(Jc, se3_right_jacobian_inv(r0))
+
+
+def test_conic_residual_is_bitwise_its_earlier_form() -> None:
+    """conic_residual with its constants built once (Q, skew(e_k)) and dh/dxi filled in place: the same bits as
+    the per-call construction (its whole earlier body, restated here as the reference)."""
+    from factors.lie import skew
+
+    rng = np.random.default_rng(15)
+    for kind in KINDS:
+        T = sample_poses(kind, 40, rng)
+        pts = rng.uniform(0, 1080, size=(120, 2))
+        r, J = res.conic_residual(T, CAM.K, NEEDLE.radius_m, pts)
+        K = CAM.K
+        R, t = T[:, :3, :3], T[:, :3, 3]
+        KR = K @ R
+        h1, h2, h3 = KR[:, :, 0], KR[:, :, 1], t @ K.T
+        A = cross(np.stack([h2, h3, h1], axis=1), np.stack([h3, h1, h2], axis=1))
+        scale = 1.0 / np.maximum(np.sqrt(np.add.reduce(A * A, axis=(1, 2))), 1e-300)
+        A = A * scale[:, None, None]
+        _, sc, P, phi = res._pixel_basis(pts)
+        Q = np.diag([1.0, 1.0, -(float(NEEDLE.radius_m) ** 2)])
+        AP = A @ P
+        QAP = Q @ AP
+        C = np.swapaxes(AP, 1, 2) @ QAP
+        cn = 1.0 / np.maximum(np.sqrt(np.add.reduce(C * C, axis=(1, 2))), 1e-300)
+        C = C * cn[:, None, None]
+        e, zero3 = np.eye(3), np.zeros((40, 3, 3))
+        Dh1 = np.concatenate([-KR @ skew(e[0]), zero3], axis=2)
+        Dh2 = np.concatenate([-KR @ skew(e[1]), zero3], axis=2)
+        Dh3 = np.concatenate([zero3, KR], axis=2)
+        S1, S2, S3 = skew(h1), skew(h2), skew(h3)
+        DA = np.stack([-S3 @ Dh2 + S2 @ Dh3, -S1 @ Dh3 + S3 @ Dh1, -S2 @ Dh1 + S1 @ Dh2], axis=1)
+        DAd = np.moveaxis(DA * scale[:, None, None, None], 3, 1) @ P
+        dC = np.swapaxes(DAd, 2, 3) @ QAP[:, None]
+        dC = (dC + np.swapaxes(dC, 2, 3)) * cn[:, None, None, None]
+        Call = np.concatenate([C[:, None], dC], axis=1)
+        flat = np.concatenate([Call.reshape(40, 7, 9), np.zeros((40, 7, 1))], axis=2)
+        coef = flat[:, :, res._CONIC_COEF_INDEX] * res._CONIC_COEF_MULT
+        out = (coef.reshape(-1, 6) @ phi).reshape(40, 7, 3, 120)
+        f, g1, g2 = out[:, 0, 0], out[:, 0, 1], out[:, 0, 2]
+        g2s = g1 * g1 + g2 * g2
+        gn = np.sqrt(g2s)
+        f2d = (f * sc / res.SAMPSON_MAX_PX) ** 2
+        den = g2s + f2d
+        ok = den > 0
+        iden = 1.0 / den if ok.all() else np.where(ok, 1.0 / np.where(ok, den, 1.0), 0.0)
+        np.testing.assert_array_equal(r, sc * f * gn * iden)
+        c_f = sc * gn * (1.0 - 2.0 * f2d * iden) * iden
+        c_g = sc * f * (1.0 - 2.0 * g2s * iden) * iden
+        pos = gn > 0
+        q = c_g / gn if pos.all() else np.where(pos, c_g / np.where(pos, gn, 1.0), 0.0)
+        J0 = out[:, 1:, 0] * c_f[:, None] + out[:, 1:, 1] * (g1 * q)[:, None]
+        J0 += out[:, 1:, 2] * (g2 * q)[:, None]
+        np.testing.assert_array_equal(J, np.swapaxes(J0, 1, 2))

@@ -110,3 +110,17 @@ def test_series_branch_skipping_is_bitwise_np_where(name: str, kind: str) -> Non
     assert np.array_equal(alone, mixed)
     for i in (0, 1):
         assert np.array_equal(f(xi[i]), alone[i])
+
+
+@pytest.mark.parametrize("kind", ("uniform", "near_identity", "near_pi", "zero"))
+def test_se3_log_right_jacobian_inv_is_bitwise_the_two_calls(kind: str) -> None:
+    """The fused log + inverse right Jacobian (one shared series coefficient) equals the two separate calls."""
+    rng = np.random.default_rng(34)
+    T = lie.se3_exp(_tangents(kind, 300, rng))
+    xi, Jinv = lie.se3_log_right_jacobian_inv(T)
+    np.testing.assert_array_equal(xi, lie.se3_log(T))
+    np.testing.assert_array_equal(Jinv, lie.se3_right_jacobian_inv(lie.se3_log(T)))
+    for i in (0, 7):  # one pose at a time (N = 1 batches)
+        xi1, J1 = lie.se3_log_right_jacobian_inv(T[i])
+        np.testing.assert_array_equal(xi1, lie.se3_log(T[i]))
+        np.testing.assert_array_equal(J1, lie.se3_right_jacobian_inv(lie.se3_log(T[i])))

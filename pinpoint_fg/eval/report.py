@@ -63,7 +63,7 @@ from pinpoint_fg.eval.modes import (
 from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
+from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
 from pinpoint_fg.likelihood import MeasurementModel, Switches
@@ -203,28 +203,14 @@ class ResultEvaluation:
 
 
 def _recording_for(res: Result, given: Recording | None, cache: dict[Path, Recording]) -> Recording:
-    if given is not None:
-        rec = given
-    else:
-        path = res.info.get("recording_path")
-        if not path:
-            raise InputError(
-                'key "recording_path" is empty: pass the recording explicitly (--recording)',
-                file=res.root / "result.json",
-            )
-        p = Path(str(path))
-        if not p.is_absolute() and not p.exists():
-            p = res.root / p
-        key = p.resolve()
-        if key not in cache:
-            cache[key] = read_recording(p)
-        rec = cache[key]
-    if str(res.info.get("recording_name")) != rec.info.name:
+    if given is None:
+        return recording_of(res, cache, hint="pass the recording explicitly (--recording)")
+    if str(res.info.get("recording_name")) != given.info.name:
         raise InputError(
-            f"result is of recording {res.info.get('recording_name')!r}, the recording is {rec.info.name!r}",
+            f"result is of recording {res.info.get('recording_name')!r}, the recording is {given.info.name!r}",
             file=res.root / "result.json", column="recording_name",
         )
-    return rec
+    return given
 
 
 def _rows_in_recording(res: Result, recording: Recording) -> np.ndarray:

@@ -59,9 +59,8 @@ import numpy as np
 
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result.reader import expand_result_dirs, read_result
+from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
 from pinpoint_fg.io.result.schema import Result
 from pinpoint_fg.io.spread_scale import LEVEL, MODE_GATE_RAD, MethodScale, SpreadScale, recorded_scale
 
@@ -103,25 +102,6 @@ def scale_quantile(err: np.ndarray, q95: np.ndarray, level: float = LEVEL, what:
 
 
 # ----------------------------------------------------------------------------- results and their truth
-
-
-def _recording_of(res: Result, cache: dict[Path, Recording]) -> Recording:
-    """The recording named by ``result.json``'s ``recording_path`` (relative: to the result), read once."""
-    path = res.info.get("recording_path")
-    if not path:
-        raise InputError('key "recording_path" is empty: the result does not say which recording it tracked',
-                         file=res.root / "result.json", column="recording_path")
-    p = Path(str(path))
-    if not p.is_absolute() and not p.exists():
-        p = res.root / p
-    key = p.resolve()
-    if key not in cache:
-        cache[key] = read_recording(p)
-    rec = cache[key]
-    if str(res.info.get("recording_name")) != rec.info.name:
-        raise InputError(f"result is of recording {res.info.get('recording_name')!r}, the recording is "
-                         f"{rec.info.name!r}", file=res.root / "result.json", column="recording_name")
-    return rec
 
 
 @dataclass(frozen=True)
@@ -175,7 +155,8 @@ def fit_spread_scale(results: list[str | Path], level: float = LEVEL,
         if recorded_scale(res.info["settings"], res.root / "result.json") is not None:
             raise InputError("its q95 were scaled when it was tracked (track --spread-scale): fit on results "
                              "tracked without it", file=res.root / "result.json", column="settings.spread_scale")
-        pooled.setdefault(res.method, []).append(frame_errors(res, _recording_of(res, cache)))
+        rec = recording_of(res, cache, hint="the result does not say which recording it tracked")
+        pooled.setdefault(res.method, []).append(frame_errors(res, rec))
     methods, unfitted = {}, {}
     for m, parts in sorted(pooled.items()):
         et = np.concatenate([p.err_trans_m for p in parts])

@@ -17,7 +17,8 @@ import numpy as np
 from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.jsonfile import load_json
-from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, json_shown, shown
+from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, Recording, json_shown, shown
 from pinpoint_fg.io.result.particles import read_journal, read_npz
 from pinpoint_fg.io.result.schema import (
     COV_COLUMNS,
@@ -369,3 +370,27 @@ def read_modes(out_dir: str | Path) -> ModeHistory:
     T = pose_from_xyz_quat(pose[:keep, :3], pose[:keep, 3:]) if keep else np.zeros((0, 4, 4))
     return ModeHistory(frame=frame[:keep], mode=mode[:keep], weight=weight[:keep], cam_T_needle=T,
                        cov_xi=cov[:keep])
+
+
+def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> Recording:
+    """The recording ``result.json`` names (``recording_path``; relative: to the result), read once per path.
+
+    ``cache`` maps resolved paths to recordings already read. The recording's name must be the result's
+    ``recording_name``. :class:`InputError` naming ``result.json`` otherwise, or when the path is empty (with
+    ``hint``, e.g. how to pass the recording instead, appended to the message).
+    """
+    path = res.info.get("recording_path")
+    if not path:
+        raise InputError(f'key "recording_path" is empty{": " + hint if hint else ""}',
+                         file=res.root / "result.json", column="recording_path")
+    p = Path(str(path))
+    if not p.is_absolute() and not p.exists():
+        p = res.root / p
+    key = p.resolve()
+    if key not in cache:
+        cache[key] = read_recording(p)
+    rec = cache[key]
+    if str(res.info.get("recording_name")) != rec.info.name:
+        raise InputError(f"result is of recording {res.info.get('recording_name')!r}, the recording is "
+                         f"{rec.info.name!r}", file=res.root / "result.json", column="recording_name")
+    return rec

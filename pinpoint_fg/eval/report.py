@@ -490,6 +490,11 @@ def table_iii(evals: Sequence[ResultEvaluation]) -> str:
     return "\n\n".join(parts)
 
 
+def _per_result(evals: Sequence[ResultEvaluation], body: Callable[[dict], str]) -> list[str]:
+    """One indented line per result: ``recording  label: body(row)``."""
+    return [f"  {ev.row['recording']}  {ev.label}: {body(ev.row)}" for ev in evals]
+
+
 def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     """The printable comparison: accuracy, uncertainty, floor and bimodality per result (fixed-width)."""
     header = ("recording", "method", "frames", "trans mm", "rot deg", "q95 mm/deg", "NLL-S t/r", "IS t/r",
@@ -525,26 +530,20 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     if any(ev.row.get("reference") for ev in evals) or any(np.isfinite(ev.row["bimodal_modes_share"])
                                                          for ev in evals):
         lines += ["", "modes (second mode >= 0.1); rates on frames the reference MHT calls multimodal / single-mode:"]
-        for ev in evals:
-            r = ev.row
-            lines.append(
-                f"  {r['recording']}  {ev.label}: bimodal GMM {_pct(r['bimodal_share'])}, modes "
-                f"{_pct(r['bimodal_modes_share'])}; truth kept modes {_pct(r['truth_kept_modes_share'])}, "
-                f"particles {_pct(r['truth_kept_particles_share'])}; vs reference: GMM "
-                f"{_pct(r['bimodal_ref_multi_rate'])} / {_pct(r['bimodal_ref_single_rate'])}, modes "
-                f"{_pct(r['bimodal_modes_ref_multi_rate'])} / {_pct(r['bimodal_modes_ref_single_rate'])} "
-                f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)"
-            )
+        lines += _per_result(evals, lambda r: (
+            f"bimodal GMM {_pct(r['bimodal_share'])}, modes "
+            f"{_pct(r['bimodal_modes_share'])}; truth kept modes {_pct(r['truth_kept_modes_share'])}, "
+            f"particles {_pct(r['truth_kept_particles_share'])}; vs reference: GMM "
+            f"{_pct(r['bimodal_ref_multi_rate'])} / {_pct(r['bimodal_ref_single_rate'])}, modes "
+            f"{_pct(r['bimodal_modes_ref_multi_rate'])} / {_pct(r['bimodal_modes_ref_single_rate'])} "
+            f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)"))
     smoothed = [ev for ev in evals if ev.row["smoothed_frames"] > 0]
     if smoothed:
         lines += ["", "fixed-lag smoothed poses (smoothed.csv) vs the filtered estimates of the same frames:"]
-        for ev in smoothed:
-            r = ev.row
-            lines.append(
-                f"  {r['recording']}  {ev.label}: smoothed {_f(r['smoothed_trans_mean_mm'])} mm / "
-                f"{_f(r['smoothed_rot_mean_deg'])} deg, filtered {_f(r['filtered_trans_mean_mm_same'])} mm / "
-                f"{_f(r['filtered_rot_mean_deg_same'])} deg ({r['smoothed_frames']} frames)"
-            )
+        lines += _per_result(smoothed, lambda r: (
+            f"smoothed {_f(r['smoothed_trans_mean_mm'])} mm / {_f(r['smoothed_rot_mean_deg'])} deg, filtered "
+            f"{_f(r['filtered_trans_mean_mm_same'])} mm / {_f(r['filtered_rot_mean_deg_same'])} deg "
+            f"({r['smoothed_frames']} frames)"))
     lines.append("bimodal = raw share; on ambig./on clear = bimodal rate on frames whose second circle pose "
                  "is within 2.3 nats / beyond 10 nats of the truth's (ΔNLL)")
     return "\n".join(lines)

@@ -275,7 +275,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     outcome = run_batch(
         args.runs, args.method, args.out, scheduler=args.scheduler, workers=args.workers, on_done=done,
         particles=args.particles, window=args.window, noise_file=args.noise, disable=args.disable, seed=args.seed,
-        overwrite=args.overwrite,
+        overwrite=args.overwrite, spread_scale=args.spread_scale,
     )
     for run, error in outcome.failures.items():
         print(f"error: {run}: {error}" if str(run) not in error else f"error: {error}", file=sys.stderr)
@@ -296,6 +296,8 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
+                   help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_batch)
 

@@ -13,6 +13,7 @@ from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.experiments.batch import BatchError, batch_track, result_dir_names, run_batch
 from pinpoint_fg.io.result.reader import expand_result_dirs
+from pinpoint_fg.io.spread_scale import MethodScale, SpreadScale
 from pinpoint_fg.sim.scenarios import simulate
 from pinpoint_fg.track import track_recording
 
@@ -61,9 +62,12 @@ def _assert_same_result(batch: Path, single: Path) -> None:
 
 
 @pytest.mark.parametrize(("method", "n_runs", "options"),
-                         [("map", 2, {}), ("svn", 1, {"particles": 10, "max_frames": 5})])
+                         [("map", 2, {}), ("svn", 1, {"particles": 10, "max_frames": 5}),
+                          ("map", 1, {"max_frames": 4, "spread_scale": "SCALE"})])
 def test_batch_equals_single_track_runs(runs: list[Path], scheduler: str, tmp_path: Path, method: str, n_runs: int,
                                         options: dict) -> None:
+    if options.get("spread_scale") == "SCALE":  # a calibrate-spread file: batch passes it on like track
+        options = {**options, "spread_scale": SpreadScale({"map": MethodScale(2.0, 3.0)}).save(tmp_path / "s.json")}
     out = batch_track(runs[:n_runs], method, tmp_path / "batch", scheduler=scheduler, seed=3, **options)
     assert out == [tmp_path / "batch" / "run", tmp_path / "batch" / "run-2"][:n_runs]
     for run, res in zip(runs, out, strict=False):
@@ -101,6 +105,10 @@ def test_bad_arguments_fail_before_a_cluster_starts(runs: list[Path], tmp_path: 
         batch_track([runs[0], runs[0]], "map", tmp_path / "o")
     with pytest.raises(InputError, match="file not found"):
         batch_track(runs, "map", tmp_path / "o", noise_file=tmp_path / "missing.json")
+    scale = SpreadScale({"svn": MethodScale(2.0, 3.0)}).save(tmp_path / "svn-only.json")
+    with pytest.raises(InputError, match="no scale for method 'map'"):
+        batch_track(runs, "map", tmp_path / "o", spread_scale=scale)
+    assert not (tmp_path / "o").exists()
     assert result_dir_names([Path("x/run"), Path("y/run"), Path("run-2"), Path("z/run")]) == \
         ["run", "run-2", "run-2-2", "run-3"]
 

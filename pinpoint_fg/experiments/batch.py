@@ -39,6 +39,7 @@ from typing import Any
 
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.outdir import prepare_output_dir
+from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.track import METHODS, track_recording
 
@@ -123,6 +124,10 @@ def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: in
         noise = Path(options["noise_file"]).absolute()
         NoiseConfig.load(noise)  # a bad noise file fails every run: say so once, before starting
         options["noise_file"] = str(noise)
+    if options.get("spread_scale") is not None:
+        scale = Path(options["spread_scale"]).absolute()
+        settings_entry(SpreadScale.load(scale), method)  # a bad file or a method without factors: say so once
+        options["spread_scale"] = str(scale)
     prepare_output_dir(out_dir, bool(options.get("overwrite", False)), "batch output")
     return paths, options
 
@@ -139,7 +144,7 @@ def run_batch(
     """Track every run on Dask (module docstring); returns each run's outcome, failures included.
 
     ``track_options`` are :func:`track_recording`'s (``particles``, ``window``, ``noise_file``,
-    ``disable``, ``seed``, ``max_frames``, ``max_points``). ``on_done(run, out, error)`` is called as
+    ``disable``, ``seed``, ``max_frames``, ``max_points``, ``spread_scale``). ``on_done(run, out, error)`` is called as
     each run finishes (``error`` None on success).
     """
     from distributed import Client, LocalCluster, as_completed

@@ -32,26 +32,32 @@ _CONIC_COEF_INDEX = np.array([[0, 1, 4, 2, 5, 8], [9, 9, 9, 0, 1, 2], [9, 9, 9, 
 _CONIC_COEF_MULT = np.array([[1.0] * 6, [1.0] * 5 + [2.0], [1.0] * 5 + [2.0]])
 
 
-#: :func:`_skew_const`'s results by the vector's bytes (needle points, unit axes: a handful per run).
-_SKEW_CONST: dict[bytes, np.ndarray] = {}  # key: the vector's bytes and shape
+def _frozen(cache: dict, key: object, make, bound: int = 256) -> np.ndarray:
+    """``cache[key]``, built by ``make()`` on a miss and kept read-only (constants derived once per value).
+
+    The memos below hold a handful of entries per run (needle points, unit axes, the needle radius); the
+    bound only guards against a caller that feeds a new value every time.
+    """
+    out = cache.get(key)
+    if out is None:
+        if len(cache) > bound:
+            cache.clear()
+        out = make()
+        out.flags.writeable = False
+        cache[key] = out
+    return out
+
+
+#: :func:`_skew_const`'s, :func:`_unit_const`'s and :func:`_conic_q`'s results.
+_SKEW_CONST: dict[bytes, np.ndarray] = {}
+_UNIT_CONST: dict[bytes, np.ndarray] = {}
+_CONIC_Q: dict[float, np.ndarray] = {}
 
 
 def _skew_const(x: np.ndarray) -> np.ndarray:
     """``skew(x)`` of one constant 3-vector (a needle point, an axis), computed once per value (read-only)."""
     x = np.asarray(x, dtype=float)
-    key = x.tobytes() + bytes(str(x.shape), "ascii")
-    out = _SKEW_CONST.get(key)
-    if out is None:
-        if len(_SKEW_CONST) > 256:  # never more than a few in practice; bounded all the same
-            _SKEW_CONST.clear()
-        out = skew(x)
-        out.flags.writeable = False
-        _SKEW_CONST[key] = out
-    return out
-
-
-#: :func:`_unit_const`'s results by the vector's bytes (the grasp tangent, a frame's grasper axis).
-_UNIT_CONST: dict[bytes, np.ndarray] = {}
+    return _frozen(_SKEW_CONST, x.tobytes() + bytes(str(x.shape), "ascii"), lambda: skew(x))
 
 
 def _unit_const(x: np.ndarray, last_axis: bool = False) -> np.ndarray:
@@ -61,15 +67,14 @@ def _unit_const(x: np.ndarray, last_axis: bool = False) -> np.ndarray:
     differently from the whole-array one: each form is kept where it was used, bit for bit).
     """
     x = np.asarray(x, dtype=float)
-    key = x.tobytes() + (b"a" if last_axis else b"")
-    out = _UNIT_CONST.get(key)
-    if out is None:
-        if len(_UNIT_CONST) > 256:  # a few per frame; bounded all the same
-            _UNIT_CONST.clear()
-        out = x / (np.linalg.norm(x, axis=-1, keepdims=True) if last_axis else np.linalg.norm(x))
-        out.flags.writeable = False
-        _UNIT_CONST[key] = out
-    return out
+    return _frozen(_UNIT_CONST, x.tobytes() + (b"a" if last_axis else b""),
+                   lambda: x / (np.linalg.norm(x, axis=-1, keepdims=True) if last_axis else np.linalg.norm(x)))
+
+
+def _conic_q(radius_m: float) -> np.ndarray:
+    """``Q = diag(1, 1, -r^2)`` of :func:`conic_residual`, built once per radius (read-only; bounded memo)."""
+    r = float(radius_m)
+    return _frozen(_CONIC_Q, r, lambda: np.diag([1.0, 1.0, -(r ** 2)]), bound=64)
 
 
 def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
@@ -250,23 +255,6 @@ def conic_residual(
 #: ``skew(e_0)``, ``skew(e_1)`` of the unit axes (:func:`conic_residual`'s dh/dxi), read-only.
 _SKEW_E = skew(np.eye(3)[:2])
 _SKEW_E.flags.writeable = False
-
-#: :func:`_conic_q`'s results by radius.
-_CONIC_Q: dict[float, np.ndarray] = {}
-
-
-def _conic_q(radius_m: float) -> np.ndarray:
-    """``Q = diag(1, 1, -r^2)`` of :func:`conic_residual`, built once per radius (read-only; bounded memo)."""
-    r = float(radius_m)
-    Q = _CONIC_Q.get(r)
-    if Q is None:
-        if len(_CONIC_Q) > 64:
-            _CONIC_Q.clear()
-        Q = np.diag([1.0, 1.0, -(r ** 2)])
-        Q.flags.writeable = False
-        _CONIC_Q[r] = Q
-    return Q
-
 
 #: The last backbone's pixel basis (:func:`_pixel_basis`): its pixels' bytes and the derived arrays (read-only).
 _PIXEL_BASIS: list = [None]

@@ -196,6 +196,7 @@ class SvnTracker(Tracker):
         self._books: tuple[np.ndarray, np.ndarray] | None = None  # (members, their rep) to share after the push
         self._prev_map: int | None = None  # the last MAP hypothesis, if it survived the pruning
         self._predicted: tuple | None = None  # (row, predicted pose, prior mean, evidence) of _prev_map
+        self._last_map: int | None = None  # the MAP hypothesis of the last step (its window: final_smoothed)
 
     @property
     def particles(self) -> np.ndarray:
@@ -323,7 +324,7 @@ class SvnTracker(Tracker):
     def final_smoothed(self) -> list[tuple[int, float, np.ndarray]]:
         """``(frame, t_s, cam_T_needle)`` of the window's poses :meth:`step` has not reported as smoothed (the last
         ``L - 1`` frames at the end of a run), from the last MAP hypothesis's window; ``track`` writes them."""
-        i = getattr(self, "_last_map", None)
+        i = self._last_map
         if self.config.window <= 1 or self.window.poses is None or i is None:
             return []
         n = self.window.size

@@ -238,6 +238,12 @@ def stein_step_reference(
     eps = config.eig_floor_rel
     fallback = 1.0 / np.asarray(config.scale, dtype=float) ** 2
     H_fl, H_inv = floor_hessians_reference(hess, eps, fallback)
+    if not config.floor_each:  # only the kernel sum is floored: each H_j symmetrised, the fallback where unusable
+        finite = np.all(np.isfinite(hess), axis=(1, 2))
+        Hs = np.where(finite[:, None, None], hess, 0.0)
+        Hs = 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+        usable = finite & (np.trace(Hs, axis1=1, axis2=2) > d * 1e-12 * fallback.max())
+        H_fl = np.where(usable[:, None, None], Hs, np.diag(fallback)[None])
 
     if config.preconditioner == "newton-alg1":
         nat = np.einsum("jab,jb->ja", H_inv, g)  # H~_j^-1 g_j

@@ -9,6 +9,7 @@ from factors import residuals as res
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import cross, se3_exp
 from factors.robust import RobustLoss
+from pinpoint_fg import stein
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, gauss_newton_frames
 from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
@@ -89,8 +90,9 @@ def test_gauss_newton_memo_is_bitwise_the_uncached_evaluation() -> None:
 
 
 @pytest.mark.parametrize("options", [
-    {}, {"normalise": "n"}, {"hessian": "kernel-average"}, {"hessian": "own"},
-    {"preconditioner": "newton-alg1"}, {"preconditioner": "none", "isotropic": True, "step_size": 1e-3},
+    {}, {"normalise": "n"}, {"hessian": "kernel-average"}, {"hessian": "own"}, {"floor_each": False},
+    {"hessian": "kernel-average", "floor_each": False}, {"preconditioner": "newton-alg1"},
+    {"preconditioner": "none", "isotropic": True, "step_size": 1e-3},
 ])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_stein_step_equals_reference(options: dict, seed: int) -> None:
@@ -362,3 +364,34 @@ def test_conic_residual_is_bitwise_its_earlier_form() -> None:
         J0 = out[:, 1:, 0] * c_f[:, None] + out[:, 1:, 1] * (g1 * q)[:, None]
         J0 += out[:, 1:, 2] * (g2 * q)[:, None]
         np.testing.assert_array_equal(J, np.swapaxes(J0, 1, 2))
+
+
+@pytest.mark.parametrize("eps", [1e-2, 1e-6, 1e-9])
+@pytest.mark.parametrize("spread", [1e-3, 1.0, 1e6])
+def test_floor_hessians_skips_the_eigen_decomposition_only_where_no_floor_binds(eps: float, spread: float) -> None:
+    """Information whose eigenvalues all lie above the floor takes the Cholesky/LU path: the same matrices as the
+    eigen-decomposition to round-off. One binding row sends the whole batch down the eigen path (the reference's
+    own, pinned exactly), as do rows without information or with non-finite entries (the fallback)."""
+    rng = np.random.default_rng(27)
+    Q = np.linalg.qr(rng.normal(size=(50, 6, 6)))[0]
+    w = spread * np.exp(rng.uniform(np.log(10 * eps), 0.0, size=(50, 6)))  # cond < 0.1 / eps: no floor binds
+    H = (Q * w[:, None, :]) @ np.swapaxes(Q, 1, 2)
+    H[:, 0, 1] += 1e-9 * np.abs(H[:, 0, 1]).max()  # slightly asymmetric: symmetrised first
+    fb = np.ones(6)
+    assert stein._unfloored(H, eps, fb, 1e-12) is not None
+    (H_fl, H_inv), (H_ref, inv_ref) = floor_hessians(H, eps), floor_hessians_reference(H, eps)
+    np.testing.assert_allclose(H_fl, H_ref, rtol=0, atol=1e-14 * np.abs(H_ref).max())
+    # inverses of matrices with condition number c agree to ~c * 1e-16 (either method's own error)
+    cond = (w.max(axis=1) / w.min(axis=1))[:, None, None]
+    assert np.all(np.abs(H_inv - inv_ref) <= 1e-13 * cond * np.abs(inv_ref).max(axis=(1, 2), keepdims=True))
+    np.testing.assert_allclose(H_inv @ (0.5 * (H + np.swapaxes(H, 1, 2))), np.broadcast_to(np.eye(6), H.shape),
+                               rtol=0, atol=1e-14 * cond.max())
+    binding = H.copy()
+    binding[7] = spread * np.diag(np.r_[0.1 * eps, np.ones(5)])
+    assert stein._unfloored(binding, eps, fb, 1e-12) is None
+    for a, b in zip(floor_hessians(binding, eps), floor_hessians_reference(binding, eps), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    for bad in (0.0, np.nan):
+        unusable = H.copy()
+        unusable[3] = bad
+        assert stein._unfloored(unusable, eps, fb, 1e-12) is None

@@ -285,6 +285,17 @@ def test_settle_also_starts_from_the_predicted_previous_map_and_keeps_the_better
     z = laplace_terms(lin_r, w2.evidence[polished])[2]
     assert z[k] == pytest.approx(max(z0[k0], z_twin), abs=1e-6)
     assert np.allclose(w2.newest[r], peak if z0[k0] >= z_twin else alone.newest[0], atol=1e-9)
+    # the start's model given (the tracker's row of its batched pre-transport model, one pose per window): the
+    # same polish, to round-off, without linearising that window again
+    batch = w.subset(np.arange(12))
+    batch.poses[-1, r] = twin
+    given = batch.linearize().subset([r])
+    w3 = w.subset(np.arange(12))
+    settled3, polished3, lin3 = svn_modes.settle(w3, w3.linearize(), found, iters=30, predicted=(r, twin, given))
+    assert polished3.tolist() == polished.tolist() and seen[-1].shape[0] == n_plain + 1
+    np.testing.assert_allclose(lin3.value, lin_r.value, rtol=1e-9)
+    np.testing.assert_allclose(w3.newest, w2.newest, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(settled3.log_evidence, settled.log_evidence, rtol=1e-9)
 
 
 def test_a_proposal_whose_predicted_peak_is_a_held_mode_is_not_polished(monkeypatch) -> None:

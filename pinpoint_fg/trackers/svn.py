@@ -109,6 +109,12 @@ class SvnSettings:
     """Kernel scale of translation (S), metres."""
     eig_floor_rel: float = 1e-2
     """Hessian eigenvalue floor relative to the largest (epsilon)."""
+    floor_each: bool = False
+    """Also floor every particle's information before the Stein step's kernel sum, not only the sum
+    (:attr:`pinpoint_fg.stein.SteinConfig.floor_each`; a second eigen-decomposition per iteration). Measured without
+    it (``scripts/svn_settings_ab.py floor_each true false RUN...``, lock-step): 4-7 % less CPU per frame, the same
+    mean errors to three digits on the clear scenarios, and on the ambiguous ones (snapshots, symmetric, drive,
+    seeds 1-4) changes of the size a change of round-off alone makes there: they are chaotic (README, *Latency*)."""
     preconditioner: str = "newton-eq14"
     """'newton-eq14' (default), 'newton-alg1' or 'none' (SVGD)."""
     hessian: str = "kernel-weighted"
@@ -189,13 +195,14 @@ class SvnTracker(Tracker):
             hessian=self.svn.hessian,
             step_size=self.svn.step_size,
             isotropic=self.svn.isotropic,
+            floor_each=self.svn.floor_each,
         )
         self.window = Window(config.window, noise.process_cov, self.svn.forgetting, self.svn.relin_threshold)
         self._times: list[tuple[int, float]] = []
         self._lin = None  # the transport's final linearisation (reused by the MAP polish)
         self._books: tuple[np.ndarray, np.ndarray] | None = None  # (members, their rep) to share after the push
         self._prev_map: int | None = None  # the last MAP hypothesis, if it survived the pruning
-        self._predicted: tuple | None = None  # (row, predicted pose, prior mean, evidence) of _prev_map
+        self._predicted: tuple | None = None  # (row, predicted pose, prior mean, evidence[, its model]) of _prev_map
         self._last_map: int | None = None  # the MAP hypothesis of the last step (its window: final_smoothed)
 
     @property
@@ -308,6 +315,10 @@ class SvnTracker(Tracker):
     def _propose(self, lik: FrameLikelihood) -> tuple[int, int]:
         """Mode proposals, admission and allotment before the transport (module docstring, step 5)."""
         lin = self.window.linearize()
+        if self._predicted is not None and self.window.size == 1:
+            # the previous MAP hypothesis is still at its prediction: its model there is the settle's start
+            # (with one pose per window no transport can move an older pose of that row in between)
+            self._predicted = (*self._predicted, lin.subset([self._predicted[0]]))
         found = basins(self.window.newest, lin, self.window.evidence, self.svn.modes)
         admitted = propose(self.window, lin, found, lik, self.svn.modes)
         moved = allot(self.window, found, admitted, self.svn.modes, self.rng, np.asarray(self.svn.jitter_sigma))
@@ -382,7 +393,7 @@ class SvnTracker(Tracker):
             found, polished, lin_r = settle(self.window, self._lin, found, self.svn.map_polish_iters,
                                             self.svn.polish_decrement, 2 * self.svn.modes.max_modes,
                                             self.svn.modes.map_starts,
-                                            None if predicted is None else predicted[:2])
+                                            None if predicted is None else (*predicted[:2], *predicted[4:]))
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])

@@ -221,7 +221,7 @@ def polish(sub: Window, lin: Linearization, iters: int, decrement: float = 1e-3)
 
 
 def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrement: float = 1e-3,
-           max_modes: int = 8, starts: int = 1, predicted: tuple[int, np.ndarray] | None = None
+           max_modes: int = 8, starts: int = 1, predicted: tuple | None = None
            ) -> tuple[Basins, np.ndarray, Linearization]:
     """Polish the best hypothesis of each of the ``max_modes`` best modes on its window and re-score the modes.
 
@@ -241,7 +241,9 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
 
     ``predicted`` ``(row, cam_T_newest (4, 4))``: one more start for the mode of hypothesis ``row``, at
     ``cam_T_newest`` — the previous MAP hypothesis at its motion prediction, where single-mode MAP starts
-    its local search — unless its Gauss-Newton-predicted peak lies within half a unit of one of that
+    its local search (a third element, optional: that one-hypothesis window's model at ``cam_T_newest``, when the
+    caller holds it already; the tracker does with one pose per window, where it equals a fresh linearisation
+    to round-off) — unless its Gauss-Newton-predicted peak lies within half a unit of one of that
     mode's starts' already. Transport moves that hypothesis before the polish, and repulsion can carry it
     over a ridge into a worse local optimum of the same mode (measured on drive-01, frame 60: 6.8 nats
     worse than the MAP baseline's optimum, 3.4 deg away). Where a row is polished from two starts, the
@@ -272,7 +274,7 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
         row, m = int(predicted[0]), int(found.labels[predicted[0]])
         one = window.subset([row])
         one.poses[-1, 0] = predicted[1]
-        lin_one = one.linearize()
+        lin_one = predicted[2] if len(predicted) > 2 else one.linearize()
         peak = one.newest @ se3_exp(laplace_terms(lin_one, one.evidence)[0])
         starts_m = np.asarray(cand)[np.asarray(cand_mode) == m]
         if np.min(scaled_distance(peak[0], found.peaks[starts_m]), initial=np.inf) > 0.5:  # a peak not yet sought

@@ -93,7 +93,8 @@ those of the branch that was best before frame ``k``, and reports them unchanged
 its parent's up to ``k - 1`` (its prior is the parent's prediction from ``x_{k-1}``, its ``history`` the
 parent's), so the parent's estimates of those frames, conditioned on the frames up to ``k - 1`` exactly as that
 prior is, are the branch's best estimates of them; its smoother cannot re-smooth them (their factors stayed in
-the parent's graph). A re-detection starts from the frame alone and knows nothing of earlier frames, so the
+the parent's graph). With the transported prior the history is the parent's carried by ``G``, and so are the
+inherited poses (``G x_j``). A re-detection starts from the frame alone and knows nothing of earlier frames, so the
 bank's estimates from before are the best there are. Filtered estimates are untouched by this bookkeeping.
 
 **Report.** The MAP is the best branch's pose; ``particles`` are the branch poses padded to ``K``
@@ -275,13 +276,16 @@ class MhtTracker(Tracker):
             for i in np.flatnonzero(np.isfinite(score) & (score >= best - self.mht.admit_nats)):
                 if is_duplicate(Tp[i], branches, self.mht.separation, self.mht.merge_mahalanobis2):
                     continue
+                before = b.smoother.before  # the parent's smoothed poses of the frames still to be reported
                 if self.mht.transport_prior:
-                    hist_cost, hist = history_cost(b, rigid_map(T_b, Tp[i]))
+                    G = rigid_map(T_b, Tp[i])
+                    hist_cost, hist = history_cost(b, G)
+                    before = {k: (f, t, G @ T) for k, (f, t, T) in before.items()}
                 else:  # the parent's own history, unchanged: nothing to charge
                     hist_cost, hist = 0.0, list(b.history)
                 if score[i] - hist_cost >= best - self.mht.admit_nats:
                     cands.append((float(score[i] - hist_cost), Tp[i], means[i], b.prior_cov, w0 - hist_cost, hist,
-                                  b.smoother.before))
+                                  before))
         cands.sort(key=lambda c: -c[0])
         # compete for slots: a candidate needs a slot among the K best and must not duplicate a better pose
         slots = sorted([b.log_w for b in branches], reverse=True)

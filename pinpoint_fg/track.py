@@ -25,10 +25,11 @@ from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.writer import ResultWriter
-from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
+from pinpoint_fg.io.spread_scale import SpreadScale, scaled_cov_xi, settings_entry
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.offload import Offload, bimodality_verdict, to_frame_estimate  # noqa: F401 - track's public names
+from pinpoint_fg.posterior.summary import posterior_columns
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
@@ -131,9 +132,12 @@ def track_recording(
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults.
     ``spread_scale``: a file of ``calibrate-spread`` (:mod:`pinpoint_fg.io.spread_scale`); the q95
-    columns written are the tracker's bounds times the method's factors, and ``result.json``'s
-    ``settings.spread_scale`` records the file and the factors (the tracker itself, its poses and particles
-    are not affected). A method the file has no factor for is refused before tracking.
+    columns written are the tracker's bounds times the method's factors, the covariances of ``modes.csv``
+    are scaled to match (:func:`~pinpoint_fg.io.spread_scale.scaled_cov_xi`: rotation block ``kappa_rot^2``,
+    translation ``kappa_trans^2``, cross ``kappa_rot kappa_trans``; the ``weak_*`` columns are those of the
+    scaled covariance), and ``result.json``'s ``settings.spread_scale`` records the file and the factors (the
+    tracker itself, its poses, particles and mode weights are not affected). A method the file has no factor
+    for is refused before tracking.
     ``blas_threads`` limits the BLAS / OpenMP thread pools while tracking (threadpoolctl; None: leave them).
     Default 1: a frame's matrices are small (6x6 blocks, N x M pixel products), so a second thread only
     spins; on the shared 2-core machine one thread made SVN's steps 2.3x, PF's and MAP's 1.2x faster.
@@ -179,10 +183,18 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
         settings["spread_scale"] = scale
 
     def scaled(row: Estimate) -> Estimate:
+        """The row with the method's factors applied to its q95, its covariance and its modes' (whose
+        least-observable direction, the ``weak_*`` columns, is then that of the scaled covariance)."""
         if scale is None:
             return row
-        return replace(row, q95_trans_m=scale["kappa_trans"] * row.q95_trans_m,
-                       q95_rot_rad=scale["kappa_rot"] * row.q95_rot_rad)
+        kt, kr = scale["kappa_trans"], scale["kappa_rot"]
+        cov = None if row.cov_xi is None else scaled_cov_xi(row.cov_xi, kt, kr)
+        modes, extra = row.modes, row.extra
+        if modes is not None:
+            modes = tuple(replace(m, cov_xi=scaled_cov_xi(m.cov_xi, kt, kr)) for m in modes)
+            extra = {**extra, **posterior_columns(modes, row.cam_T_needle)}
+        return replace(row, q95_trans_m=kt * row.q95_trans_m, q95_rot_rad=kr * row.q95_rot_rad, cov_xi=cov,
+                       modes=modes, extra=extra)
     show = sys.stderr.isatty() if progress is None else bool(progress)
     with _thread_limit(blas_threads), ResultWriter(out, method, settings, recording.info.name,
                                                    str(Path(run).resolve()), weighted=(method in WEIGHTED_METHODS),

@@ -17,10 +17,13 @@ from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.eval.spread_calibration import coverage, fit_spread_scale, frame_errors, scale_quantile, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result.reader import read_result
+from pinpoint_fg.io.result.reader import read_modes, read_result
+from pinpoint_fg.io.result.schema import Result
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.io.spread_scale import MethodScale, SpreadScale, recorded_scale
+from pinpoint_fg.posterior.summary import WEAK_COLUMNS, map_mode, weak_direction
 from pinpoint_fg.sim.scenarios import simulate
+from pinpoint_fg.track import track_recording
 
 F = 40
 Q95_TRANS_M = 1e-3
@@ -239,6 +242,24 @@ def test_cli_calibrate_spread_and_evaluate_with_it(data, tmp_path: Path, capsys:
     assert main(["calibrate-spread", str(tmp_path / "missing"), "--out", str(tmp_path / "s2.json")]) == 2
 
 
+def _assert_modes_scaled(raw: Result, scaled: Result, kt: float, kr: float) -> None:
+    """modes.csv of ``scaled`` is that of ``raw`` with the covariances scaled like q95 (rotation block kr^2,
+    translation kt^2, cross kr kt; 1e-12 relative), and its weak_* columns are those of the scaled MAP mode."""
+    a, b = read_modes(raw.root), read_modes(scaled.root)
+    np.testing.assert_array_equal(b.frame, a.frame)
+    np.testing.assert_array_equal(b.weight, a.weight)
+    np.testing.assert_array_equal(b.cam_T_needle, a.cam_T_needle)
+    k = np.array([kr] * 3 + [kt] * 3)
+    np.testing.assert_allclose(b.cov_xi, a.cov_xi * np.outer(k, k), rtol=1e-12, atol=0)
+    assert not np.allclose(b.cov_xi, a.cov_xi, rtol=0.5)  # the factors are far from 1: the check can fail
+    modes = b.by_frame()
+    for i, f in enumerate(scaled.frame):
+        u, sigma = weak_direction(map_mode(modes[int(f)], scaled.cam_T_needle[i]).cov_xi)
+        assert scaled.extra["weak_sigma"][i] == pytest.approx(sigma, rel=1e-12)
+        np.testing.assert_allclose([scaled.extra[c][i] for c in WEAK_COLUMNS[:6]], u, atol=1e-12)
+    assert not np.allclose(scaled.extra["weak_sigma"], raw.extra["weak_sigma"])
+
+
 def test_cli_track_with_a_spread_scale_writes_scaled_q95_and_records_it(data, tmp_path: Path,  # noqa: ANN001
                                                                         capsys: pytest.CaptureFixture) -> None:
     rec, _, _ = data
@@ -255,6 +276,7 @@ def test_cli_track_with_a_spread_scale_writes_scaled_q95_and_records_it(data, tm
     assert b.info["settings"]["spread_scale"] == {"file": str(scale.resolve()), "kappa_trans": 2.5, "kappa_rot": 3.5}
     assert "spread_scale" not in a.info["settings"]
     assert recorded_scale(b.info["settings"], b.root / "result.json") == (2.5, 3.5)
+    _assert_modes_scaled(a, b, 2.5, 3.5)
     capsys.readouterr()
 
     # no double scaling, no fit on scaled bounds, no method without a factor
@@ -276,3 +298,15 @@ def test_cli_track_with_a_spread_scale_writes_scaled_q95_and_records_it(data, tm
     assert rows[1]["coverage_raw_rot"] == rows[0]["coverage_rot"]
 
 
+
+
+def test_track_with_a_spread_scale_scales_every_mode_of_a_bank(data, tmp_path: Path) -> None:  # noqa: ANN001
+    """MHT: several modes per frame, each a GTSAM marginal; every one is scaled, weights and poses untouched."""
+    rec, _, _ = data
+    scale = tmp_path / "scale.json"
+    SpreadScale(methods={"mht": MethodScale(2.25, 2.9)}).save(scale)
+    kw = dict(method="mht", max_frames=10, progress=False)
+    a = read_result(track_recording(rec.root, out=tmp_path / "raw", **kw))
+    b = read_result(track_recording(rec.root, out=tmp_path / "scaled", spread_scale=scale, **kw))
+    assert np.any(np.bincount(read_modes(a.root).frame) >= 2)  # a frame with several modes is among them
+    _assert_modes_scaled(a, b, 2.25, 2.9)

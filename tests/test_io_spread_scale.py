@@ -6,12 +6,13 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.spread_scale import MethodScale, SpreadScale, recorded_scale, settings_entry
+from pinpoint_fg.io.spread_scale import MethodScale, SpreadScale, recorded_scale, scaled_cov_xi, settings_entry
 
 
 def valid_doc() -> dict:
@@ -146,3 +147,20 @@ def test_recorded_scale_refuses_a_malformed_entry(entry: object, column: str) ->
         recorded_scale({"spread_scale": entry}, "r/result.json")
     assert exc.value.column == column
     assert recorded_scale({}, "r/result.json") is None
+
+
+def test_scaled_cov_xi_scales_the_blocks_by_the_factors() -> None:
+    """Rotation block by kappa_rot^2, translation by kappa_trans^2, cross by their product: the covariance of
+    ``K xi`` (its Cholesky factor is ``K`` times the input's), so each draw's |omega| and |v| scale by the factors."""
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((6, 6)) * np.array([0.02] * 3 + [5e-4] * 3)
+    C = A @ A.T + 1e-9 * np.eye(6)
+    kt, kr = 2.25, 2.9
+    S = scaled_cov_xi(C, kt, kr)
+    np.testing.assert_allclose(S[:3, :3], kr**2 * C[:3, :3], rtol=1e-15)
+    np.testing.assert_allclose(S[3:, 3:], kt**2 * C[3:, 3:], rtol=1e-15)
+    np.testing.assert_allclose(S[:3, 3:], kr * kt * C[:3, 3:], rtol=1e-15)
+    assert np.array_equal(S, S.T)
+    K = np.diag([kr] * 3 + [kt] * 3)
+    Ls = np.linalg.cholesky(S)
+    np.testing.assert_allclose(Ls, K @ np.linalg.cholesky(C), rtol=1e-12, atol=1e-12 * np.abs(Ls).max())

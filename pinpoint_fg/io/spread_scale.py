@@ -4,8 +4,9 @@ A :class:`SpreadScale` holds, per tracking method, the factors ``kappa_trans`` a
 which the q95 bounds of that method must be multiplied to cover ``level`` (95 %) of the frames; they are
 fitted on training results with ground truth by :func:`pinpoint_fg.eval.spread_calibration.fit_spread_scale`
 (the fit and its decisions are documented there). ``evaluate --spread-scale`` applies them to results
-when it scores them, ``track --spread-scale`` to the q95 columns it writes (and records that in
-``result.json``'s ``settings.spread_scale``, see :func:`recorded_scale`).
+when it scores them, ``track --spread-scale`` to the q95 columns it writes and to the covariances of
+``modes.csv`` (:func:`scaled_cov_xi`), and records that in ``result.json``'s ``settings.spread_scale``
+(see :func:`recorded_scale`).
 
 File format (JSON, UTF-8)::
 
@@ -29,6 +30,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.jsonfile import load_json
@@ -213,6 +216,21 @@ def format_scale(scale: SpreadScale) -> str:
 
 
 # ----------------------------------------------------------------------------- scaled at tracking time
+
+
+def scaled_cov_xi(cov_xi: np.ndarray, kappa_trans: float, kappa_rot: float) -> np.ndarray:
+    """A (6, 6) covariance in GTSAM's chart ``[omega; v]`` with the q95 factors applied: ``K C K``,
+    ``K = diag(kappa_rot x3, kappa_trans x3)``.
+
+    The rotation block is multiplied by ``kappa_rot^2``, the translation block by ``kappa_trans^2``, the
+    cross blocks by ``kappa_rot kappa_trans``: the covariance of ``K xi`` for ``xi`` with covariance ``C``,
+    whose ``|omega|`` and ``|v|`` are ``kappa_rot |omega|`` and ``kappa_trans |v|``. So the Gaussian's 95 %
+    quantiles of ``|omega|`` and ``|v|`` (what q95 reports) grow by exactly the factors, the particle methods'
+    deviations scale alike, and the correlations are unchanged. Elementwise (one product per entry), so a
+    symmetric input stays exactly symmetric.
+    """
+    k = np.array([kappa_rot] * 3 + [kappa_trans] * 3, dtype=float)
+    return np.asarray(cov_xi, dtype=float) * np.outer(k, k)
 
 
 def settings_entry(scale: SpreadScale, method: str) -> dict[str, Any]:

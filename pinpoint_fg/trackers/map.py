@@ -53,9 +53,16 @@ between snapshots 0.5 s apart — a fresh seeding of the frame, ``Estimate.resee
 window, and failing that the weak prior's covariance is reported. Both count in
 ``Estimate.extra["recovered"]``. When the estimate explains the frame implausibly badly
 (:func:`pinpoint_fg.trackers.base.implausible`, the criterion every tracker shares) the smoother
-is restarted from a fresh seeding of the frame (``Estimate.reseeded``); the smoothed output then
-pauses until the new window holds ``L`` frames again. Graph keys are
+is restarted from a fresh seeding of the frame (``Estimate.reseeded``). Graph keys are
 never iterated as temporary ``KeySet`` objects (GTSAM_NOTES §6).
+
+**Smoothed poses across a restart.** Every frame gets exactly one smoothed pose, when it leaves the
+window (the last ``L - 1`` at the end, :meth:`MapSmoother.remaining_smoothed`). A smoother rebuilt or
+restarted at frame ``k`` no longer holds the earlier frames still in the window; they keep the smoothed
+poses they had before frame ``k`` was added (:meth:`MapSmoother.pending`, conditioned on the frames up
+to ``k - 1``) and are reported at those, frozen (``MapSmoother.inherited``): the rebuilt smoother
+summarises them by a prior on one pose and cannot re-smooth them. The ``mht`` bank hands its branches'
+poses on the same way (its module docstring).
 """
 
 from __future__ import annotations
@@ -181,13 +188,22 @@ class MapSmoother:
         self.newest: np.ndarray | None = None
         self.cov: np.ndarray | None = None
         self.last_update: tuple[gtsam.NonlinearFactorGraph, gtsam.Values] | None = None
+        self.inherited: dict[int, tuple[int, float, np.ndarray]] = {}  # key -> smoothed pose, keys < first_key
+        self.before: dict[int, tuple[int, float, np.ndarray]] = {}  # pending() as of before the latest key
 
     def _new_smoother(self) -> gtsam.BatchFixedLagSmoother:
         return gtsam.BatchFixedLagSmoother(self.lag, self.map.lm_params())
 
     def restart(self, frame_factors: list, key: int, cam_T_init: np.ndarray,
-                prior: tuple[np.ndarray, gtsam.noiseModel.Base] | None = None) -> gtsam.FixedLagSmootherResult:
-        """A fresh smoother holding only ``key``: its frame factors and a prior (default: weak, at ``cam_T_init``)."""
+                prior: tuple[np.ndarray, gtsam.noiseModel.Base] | None = None,
+                inherit: dict[int, tuple[int, float, np.ndarray]] | None = None) -> gtsam.FixedLagSmootherResult:
+        """A fresh smoother holding only ``key``: its frame factors and a prior (default: weak, at ``cam_T_init``).
+
+        ``inherit``: the smoothed poses of the frames before ``key`` not yet reported (a :meth:`pending` taken
+        before this frame), which the fresh smoother cannot hold; :meth:`smoothed_at` reports them as they are.
+        """
+        self._hand_over(key, inherit)
+        self.before = dict(self.inherited)  # a branch started here: what it inherited is its pending before `key`
         self.smoother = self._new_smoother()
         self.first_key = key
         mean, noise = (cam_T_init, self.prior_noise) if prior is None else prior
@@ -200,6 +216,7 @@ class MapSmoother:
     def _rebuild(self, new_factors: list, key: int, cam_T_init: np.ndarray) -> gtsam.FixedLagSmootherResult:
         """Recovery after GTSAM raised: previous pose as a Gaussian prior, this frame's factors, weak prior."""
         assert self.newest is not None and self.cov is not None
+        self._hand_over(key - 1, self.before)
         self.smoother = self._new_smoother()
         self.first_key = key - 1
         prev_noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (self.cov + self.cov.T))
@@ -214,6 +231,7 @@ class MapSmoother:
                 ) -> tuple[gtsam.FixedLagSmootherResult, int]:
         """Add ``key`` with its frame factors and the motion factor from ``key - 1``; returns (result, recoveries)."""
         assert self.smoother is not None and self.newest is not None
+        self.before = self.pending()
         new_factors = [*frame_factors, MotionFactor(key - 1, key, D, motion_noise)]
         cam_T_init = D @ self.newest
         g = _graph(new_factors)
@@ -226,7 +244,7 @@ class MapSmoother:
             try:
                 return self._rebuild(new_factors, key, cam_T_init), 1
             except RuntimeError:  # the previous pose's prior is the problem: start over from here
-                return self.restart(frame_factors, key, cam_T_init), 1
+                return self.restart(frame_factors, key, cam_T_init, inherit=self.before), 1
 
     def estimate(self, key: int) -> np.ndarray:
         """(4, 4) the smoother's current estimate of ``key``."""
@@ -261,22 +279,41 @@ class MapSmoother:
         self.newest = est
         cov, fell_back = self.marginal_cov(key)
         self.cov = cov
-        smoothed = None
         old = key - (self.window - 1)
-        if self.window > 1 and old >= self.first_key:
-            f_old, t_old = self.stamps[old]
-            smoothed = (f_old, t_old, self.estimate(old))
+        smoothed = self.smoothed_at(old) if self.window > 1 else None
         for k in [k for k in self.stamps if k < old]:
             del self.stamps[k]
+        for k in [k for k in self.inherited if k < old]:
+            del self.inherited[k]
         return cov, fell_back, smoothed
+
+    def smoothed_at(self, key: int) -> tuple[int, float, np.ndarray] | None:
+        """``(frame, t_s, pose)`` of ``key`` at its current smoothed value: the smoother's estimate while it holds
+        the key, else the inherited pose (a restart or a branch started after it); None when neither has it."""
+        if key >= self.first_key and key in self.stamps:
+            return (*self.stamps[key], self.estimate(key))
+        return self.inherited.get(key)
+
+    def pending(self) -> dict[int, tuple[int, float, np.ndarray]]:
+        """The window's poses :meth:`finish` has not reported as smoothed yet (its last ``L - 1`` keys, each at its
+        current smoothed value, inherited ones included), by key; empty with ``L = 1`` or before the first key."""
+        if self.window <= 1 or self.smoother is None or self.key < 0:
+            return {}
+        out = {}
+        for k in range(self.key - (self.window - 1) + 1, self.key + 1):
+            s = self.smoothed_at(k)
+            if s is not None:
+                out[k] = s
+        return out
+
+    def _hand_over(self, first_key: int, inherit: dict[int, tuple[int, float, np.ndarray]] | None) -> None:
+        """Keep the poses of ``inherit`` older than ``first_key`` (copied) as this smoother's inherited ones."""
+        self.inherited = {k: (f, t, T.copy()) for k, (f, t, T) in (inherit or {}).items() if k < first_key}
 
     def remaining_smoothed(self) -> list[tuple[int, float, np.ndarray]]:
         """At the end of a run: the window's poses :meth:`finish` has not reported as smoothed (its last
-        ``L - 1`` frames, fewer after a restart), each at its smoothed value, oldest first."""
-        if self.window <= 1 or self.smoother is None or self.key < 0:
-            return []
-        start = max(self.key - (self.window - 1) + 1, self.first_key)
-        return [(*self.stamps[k], self.estimate(k)) for k in range(start, self.key + 1) if k in self.stamps]
+        ``L - 1`` frames, inherited ones included), each at its smoothed value, oldest first."""
+        return [v for _, v in sorted(self.pending().items())]
 
 
 class MapTracker(Tracker):
@@ -356,11 +393,11 @@ class MapTracker(Tracker):
             try:
                 result, recovered = b.advance(frame_factors, key, D, motion_noise)
             except RuntimeError:  # even a restart at the prediction raised (e.g. a far snapshot): re-seed
-                result, recovered = b.restart(frame_factors, key, self._seed_pose(lik)), 1
+                result, recovered = b.restart(frame_factors, key, self._seed_pose(lik), inherit=b.before), 1
                 reseeded = True
         est = b.estimate(key)
         if self.map.reseed and key > b.first_key and implausible(float(lik.nll(est)[0]), lik):
-            result = b.restart(frame_factors, key, self._seed_pose(lik))
+            result = b.restart(frame_factors, key, self._seed_pose(lik), inherit=b.before)
             est = b.estimate(key)
             reseeded = True
         cov, fell_back, smoothed = b.finish(key, observation.frame, observation.t_s, est)

@@ -83,6 +83,20 @@ too ends, and a candidate whose smoother raises is not admitted (both count in `
 When no branch is left the bank re-detects from the frame; if GTSAM cannot solve any seed with
 the frame, the best seed is held by its weak prior alone for this frame.
 
+**Smoothed poses** (``L > 1``). Frame ``k - L + 1`` leaves the window at frame ``k`` and is reported at the pose
+the branch that is best at frame ``k`` holds for it (each frame exactly once; the last ``L - 1`` frames from the
+best branch at the end, :meth:`MhtTracker.final_smoothed`). A branch started at frame ``k`` — a proposal
+admitted, or a re-detection — has a smoother holding ``x_k`` only, so it *inherits* the frames still to be
+reported: a proposal its parent's smoothed poses as they were before frame ``k`` was added, a re-detected bank
+those of the branch that was best before frame ``k``, and reports them unchanged when they leave the window
+(:meth:`pinpoint_fg.trackers.map.MapSmoother.pending`, ``inherited``). Why: the new branch's mode history *is*
+its parent's up to ``k - 1`` (its prior is the parent's prediction from ``x_{k-1}``, its ``history`` the
+parent's), so the parent's estimates of those frames, conditioned on the frames up to ``k - 1`` exactly as that
+prior is, are the branch's best estimates of them; its smoother cannot re-smooth them (their factors stayed in
+the parent's graph). With the transported prior the history is the parent's carried by ``G``, and so are the
+inherited poses (``G x_j``). A re-detection starts from the frame alone and knows nothing of earlier frames, so the
+bank's estimates from before are the best there are. Filtered estimates are untouched by this bookkeeping.
+
 **Report.** The MAP is the best branch's pose; ``particles`` are the branch poses padded to ``K``
 rows (``particles.npz`` needs a fixed ``N``) with copies of the best pose at weight 0 and
 log-posterior ``-inf``; ``weights`` are the normalised branch weights, ``log_posterior`` their
@@ -194,14 +208,17 @@ class MhtTracker(Tracker):
 
     # ------------------------------------------------------------------ pieces
     def _new_branch(self, lik: FrameLikelihood, key: int, obs: Observation, T_init: np.ndarray,
-                    mean: np.ndarray, prior_cov: np.ndarray, log_w0: float,
+                    mean: np.ndarray, prior_cov: np.ndarray, log_w0: float, inherit: dict,
                     frame_factors: bool = True) -> tuple[Branch | None, int]:
-        """A new smoother at ``key``: the frame's factors and the prior ``N(mean, prior_cov)``; None if GTSAM raises."""
+        """A new smoother at ``key``: the frame's factors and the prior ``N(mean, prior_cov)``; None if GTSAM raises.
+
+        ``inherit``: the smoothed poses of the earlier frames still to be reported (module docstring, *Smoothed poses*).
+        """
         sm = MapSmoother(self.mht.map, self.config.window)
         noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (prior_cov + prior_cov.T))
         factors = lik.gtsam_factors(key) if frame_factors else []
         try:
-            result = sm.restart(factors, key, T_init, prior=(mean, noise))
+            result = sm.restart(factors, key, T_init, prior=(mean, noise), inherit=inherit)
         except RuntimeError:
             return None, 1
         T = sm.estimate(key)
@@ -209,17 +226,18 @@ class MhtTracker(Tracker):
         inc = branch_evidence(lik, T, cov, mean, prior_cov)
         return Branch(sm, log_w0 + inc, mean, prior_cov, inc, max(int(result.getIterations()), 1)), int(fell_back)
 
-    def _seed(self, lik: FrameLikelihood, key: int, obs: Observation) -> tuple[list[Branch], int]:
+    def _seed(self, lik: FrameLikelihood, key: int, obs: Observation, inherit: dict) -> tuple[list[Branch], int]:
         """Branches from the frame alone (first frame, re-detection): the best K seeding modes, weak prior."""
         _, modes = seed_particles(lik, max(self.config.particles, InitConfig().max_modes), self.rng)
         out, rec = [], 0
         for T in modes[: self.mht.max_branches]:
-            b, r = self._new_branch(lik, key, obs, T, T, self._weak_cov, 0.0)
+            b, r = self._new_branch(lik, key, obs, T, T, self._weak_cov, 0.0, inherit)
             rec += r
             if b is not None:
                 out.append(b)
         if not out:  # GTSAM could not solve any seed with this frame: hold the best seed by its weak prior alone
-            b, r = self._new_branch(lik, key, obs, modes[0], modes[0], self._weak_cov, 0.0, frame_factors=False)
+            b, r = self._new_branch(lik, key, obs, modes[0], modes[0], self._weak_cov, 0.0, inherit,
+                                    frame_factors=False)
             assert b is not None
             out.append(b)
             rec += r
@@ -235,7 +253,7 @@ class MhtTracker(Tracker):
         """Proposals of every branch: screen, let the best compete for the K slots, build their smoothers."""
         held = np.stack([b.smoother.newest for b in branches])
         best = max(b.log_w for b in branches)
-        cands: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, float, list]] = []
+        cands: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, float, list, dict]] = []
         n_prop = 0
         for j, (b, w0) in enumerate(zip(branches, prev_w, strict=True)):
             T_b = b.smoother.newest
@@ -258,23 +276,27 @@ class MhtTracker(Tracker):
             for i in np.flatnonzero(np.isfinite(score) & (score >= best - self.mht.admit_nats)):
                 if is_duplicate(Tp[i], branches, self.mht.separation, self.mht.merge_mahalanobis2):
                     continue
+                before = b.smoother.before  # the parent's smoothed poses of the frames still to be reported
                 if self.mht.transport_prior:
-                    hist_cost, hist = history_cost(b, rigid_map(T_b, Tp[i]))
+                    G = rigid_map(T_b, Tp[i])
+                    hist_cost, hist = history_cost(b, G)
+                    before = {k: (f, t, G @ T) for k, (f, t, T) in before.items()}
                 else:  # the parent's own history, unchanged: nothing to charge
                     hist_cost, hist = 0.0, list(b.history)
                 if score[i] - hist_cost >= best - self.mht.admit_nats:
-                    cands.append((float(score[i] - hist_cost), Tp[i], means[i], b.prior_cov, w0 - hist_cost, hist))
+                    cands.append((float(score[i] - hist_cost), Tp[i], means[i], b.prior_cov, w0 - hist_cost, hist,
+                                  before))
         cands.sort(key=lambda c: -c[0])
         # compete for slots: a candidate needs a slot among the K best and must not duplicate a better pose
         slots = sorted([b.log_w for b in branches], reverse=True)
         out, admitted, rec = [], 0, 0
-        for score, T, mean, pc, w0, hist in cands:
+        for score, T, mean, pc, w0, hist, before in cands:
             rank = sum(s > score for s in slots)
             if rank >= self.mht.max_branches:
                 break
             if is_duplicate(T, branches + out, self.mht.separation, self.mht.merge_mahalanobis2):
                 continue
-            nb, r = self._new_branch(lik, key, obs, T, mean, pc, w0)
+            nb, r = self._new_branch(lik, key, obs, T, mean, pc, w0, before)
             rec += r
             if nb is None:
                 continue
@@ -287,8 +309,9 @@ class MhtTracker(Tracker):
 
     # ------------------------------------------------------------------ step
     def final_smoothed(self) -> list[tuple[int, float, np.ndarray]]:
-        """``(frame, t_s, cam_T_needle)`` of the last ``L - 1`` frames at the end of a run, from the best branch's
-        smoother (the one whose smoothed poses :meth:`step` reports); ``track`` writes them to smoothed.csv."""
+        """``(frame, t_s, cam_T_needle)`` of the last ``L - 1`` frames at the end of a run, from the best branch
+        (the one whose smoothed poses :meth:`step` reports, inherited ones included); ``track`` writes them to
+        smoothed.csv."""
         if not self.branches:
             return []
         return self.branches[0].smoother.remaining_smoothed()
@@ -303,7 +326,7 @@ class MhtTracker(Tracker):
         key = self._key + 1
         recovered, reseeded = 0, False
         if not self.branches:
-            branches, recovered = self._seed(lik, key, observation)
+            branches, recovered = self._seed(lik, key, observation, {})
         else:
             branches = []
             for b in self.branches:
@@ -323,7 +346,8 @@ class MhtTracker(Tracker):
                 branches.append(b)
             if not branches or (self.mht.map.reseed and
                                 all(implausible(float(lik.nll(b.smoother.newest)[0]), lik) for b in branches)):
-                branches, r = self._seed(lik, key, observation)
+                # the re-detected branches inherit the frames still to be reported from the best branch before
+                branches, r = self._seed(lik, key, observation, self.branches[0].smoother.before)
                 recovered += r
                 reseeded = True
         branches = self._select(branches)
@@ -344,10 +368,7 @@ class MhtTracker(Tracker):
         K = self.mht.max_branches
         top = branches[0].smoother
         best = top.newest
-        old = key - (self.config.window - 1)
-        smoothed = None
-        if self.config.window > 1 and old >= top.first_key and old in top.stamps:
-            smoothed = (*top.stamps[old], top.estimate(old))
+        smoothed = top.smoothed_at(key - (self.config.window - 1)) if self.config.window > 1 else None
         pad = K - len(branches)
         particles = np.concatenate([np.stack([b.smoother.newest for b in branches]), np.repeat(best[None], pad, 0)])
         weights = np.r_[w, np.zeros(pad)]

@@ -6,10 +6,12 @@ RUN [RUN ...]`` (e.g. ``floor_each true false /tmp/runs/normal-01``; FIELD is an
 
 Both trackers are stepped in turn on every frame (lock-step, one thread: load on the machine hits both alike),
 with the run's suggested switches (``track``'s own). Prints per run the median thread-CPU milliseconds per frame
-over all, no-mask and mask frames (from frame 10 on: the first frames run more iterations), the ratio B / A of
-the medians, and the MAP pose's mean translation (mm) and rotation (deg) errors over every frame with ground
-truth; last, the ratio of the summed per-run medians. The ambiguous scenarios (symmetric, snapshots, drive) are
-chaotic: a change of round-off alone moves their errors, so judge accuracy over several seeds.
+over all, no-mask and mask frames (from frame 10 on: the first frames run more iterations), the MAP pose's mean
+translation (mm) and rotation (deg) errors, the share of frames where a particle is within 2 mm / 10 deg of the
+truth (``kept``) and the modes verdict (second mode >= 0.1, ``bim``), all over the frames with ground truth, and
+the ratio B / A of the CPU medians; last, the ratio of the summed per-run medians. The ambiguous scenarios
+(symmetric, snapshots, drive) are chaotic: a change of round-off alone moves their errors, so judge accuracy over
+several seeds.
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
+from pinpoint_fg.eval.modes import near_truth
 from pinpoint_fg.io.recording import read_recording
 from pinpoint_fg.observe import observe_frame
+from pinpoint_fg.posterior.summary import bimodal_from_modes, modes_of_estimate
 from pinpoint_fg.track import suggested_disable, tracker_config
 from pinpoint_fg.trackers.svn import SvnSettings, SvnTracker
 
@@ -39,14 +43,14 @@ def main() -> None:
     values = [json.loads(args.value_a), json.loads(args.value_b)]
     settings = [dataclasses.replace(SvnSettings(), **{args.field: v}) for v in values]
     totals = np.zeros(2)
-    print(f"{'run':16s} " + " | ".join(f"{args.field}={v!s:6s} med  no-mask  mask   mm    deg" for v in values)
-          + " | B/A")
+    print(f"{'run':16s} " + " | ".join(f"{args.field}={v!s:6s} med  no-mask  mask   mm    deg  kept  bim"
+                                        for v in values) + " | B/A")
     for run in args.runs:
         rec = read_recording(run)
         config = tracker_config(rec, "svn", disable=suggested_disable(run), seed=0)
         trackers = [SvnTracker(config, s) for s in settings]
         cpu = np.zeros((2, len(rec.frames)))
-        err: list[list[tuple[float, float]]] = [[], []]
+        err: list[list[tuple[float, float, bool, bool]]] = [[], []]
         mask = np.zeros(len(rec.frames), dtype=bool)
         for k, frame in enumerate(rec.frames):
             obs = observe_frame(rec, frame)
@@ -57,15 +61,17 @@ def main() -> None:
                 cpu[i, k] = 1e3 * (time.thread_time() - t0)
                 if frame.cam_T_needle_gt is not None:
                     e = pose_errors(est.cam_T_needle[None], frame.cam_T_needle_gt[None])
-                    err[i].append((1e3 * float(e.trans_m[0]), float(np.degrees(e.rot_rad[0]))))
+                    err[i].append((1e3 * float(e.trans_m[0]), float(np.degrees(e.rot_rad[0])),
+                                   bool(np.any(near_truth(est.particles, frame.cam_T_needle_gt))),
+                                   bool(bimodal_from_modes(modes_of_estimate(est)))))
         sel = np.arange(len(rec.frames)) >= 10
         cols = []
         for i in range(2):
             med = float(np.median(cpu[i, sel]))
             totals[i] += med
-            mm, deg = np.mean(err[i], axis=0) if err[i] else (float("nan"), float("nan"))
+            mm, deg, kept, bim = np.mean(err[i], axis=0) if err[i] else (float("nan"),) * 4
             cols.append(f"{'':{len(args.field) + 7}s}{med:5.1f} {np.median(cpu[i, sel & ~mask]):7.1f} "
-                        f"{np.median(cpu[i, sel & mask]):5.1f} {mm:6.3f} {deg:6.2f}")
+                        f"{np.median(cpu[i, sel & mask]):5.1f} {mm:6.3f} {deg:6.2f} {kept:5.0%} {bim:4.0%}")
         ratio = np.median(cpu[1, sel]) / np.median(cpu[0, sel])
         print(f"{run.name:16s} " + " | ".join(cols) + f" | {ratio:.3f}", flush=True)
     print(f"sum of the per-run medians, B / A: {totals[1] / totals[0]:.3f}")

@@ -109,12 +109,13 @@ class SvnSettings:
     """Kernel scale of translation (S), metres."""
     eig_floor_rel: float = 1e-2
     """Hessian eigenvalue floor relative to the largest (epsilon)."""
-    floor_each: bool = False
+    floor_each: bool = True
     """Also floor every particle's information before the Stein step's kernel sum, not only the sum
-    (:attr:`pinpoint_fg.stein.SteinConfig.floor_each`; a second eigen-decomposition per iteration). Measured without
-    it (``scripts/svn_settings_ab.py floor_each true false RUN...``, lock-step): 4-7 % less CPU per frame, the same
-    mean errors to three digits on the clear scenarios, and on the ambiguous ones (snapshots, symmetric, drive,
-    seeds 1-4) changes of the size a change of round-off alone makes there: they are chaotic (README, *Latency*)."""
+    (:attr:`pinpoint_fg.stein.SteinConfig.floor_each`; a second eigen-decomposition per iteration). Without it
+    (``scripts/svn_settings_ab.py floor_each true false RUN...``, lock-step) the clear runs cost 4-7 % less CPU
+    per frame at the same errors (to three digits), but snapshots, seeds 1-10, lost accuracy on 8 of 10 runs
+    (mean rotation error 18.1 -> 20.2 deg, truth kept 94.5 -> 93.2 %) at no saving there (0.98x): the
+    per-particle floor damps each particle's weak directions, which matter where posteriors are broad."""
     preconditioner: str = "newton-eq14"
     """'newton-eq14' (default), 'newton-alg1' or 'none' (SVGD)."""
     hessian: str = "kernel-weighted"
@@ -136,7 +137,12 @@ class SvnSettings:
     stop_quiet: int = 2
     """Early stop after this many consecutive iterations with small steps. One measured 14 % faster per frame
     (normal-01, drive-01) but moved drive-01's mean rotation error 3.18 -> 3.27 deg (+2.7 %) and flipped the
-    ambiguous runs' outcomes (symmetric-01 bimodal frames 100 % -> 19 %), so two stay the default."""
+    ambiguous runs' outcomes (symmetric-01 bimodal frames 100 % -> 19 %), so two stay the default. Measured again
+    on 24 runs, seeds 1-4 (``scripts/svn_settings_ab.py stop_quiet 2 1 RUN...``, lock-step, ``floor_each`` off):
+    6-16 % less CPU per frame, the same errors on the clear runs (to 0.4 %), but drive-01 3.06 -> 3.53 deg:
+    through its edge-on turn (frames 57-86) the MAP settles in a local optimum 1-9 deg worse, while drive-04
+    went 3.31 -> 2.89 and the snapshots runs moved both ways. Not adopted: one scenario's MAP is worse, the rest
+    is noise-level."""
     stop_logp: float = float("inf")
     """Early stop: also require the best log-posterior to change by less than this (inf: steps alone).
     The paper's 0.02 kept 80-90 % of mask frames at the iteration cap although the steps had fallen

@@ -188,7 +188,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     if args.quick:
         frames, grid = min(frames, 150), min(grid or frames, 100)
     run_benchmark(out=args.out, frames=frames, seed=args.seed, jobs=args.jobs, grid_frames=grid,
-                  overwrite=args.overwrite)
+                  overwrite=args.overwrite, unseen_seeds=tuple(args.unseen_seeds))
     return 0
 
 
@@ -419,6 +419,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")
     s.add_argument("--grid-frames", type=int, default=150, help="frames of the N x L latency grid")
     s.add_argument("--quick", action="store_true", help="150 frames per scenario, 100 in the N x L grid")
+    s.add_argument("--unseen-seeds", type=int, nargs="+", default=[], metavar="SEED",
+                   help="also track every scenario on these seeds with svn, pf, map and mht; means over them")
     s.set_defaults(func=_cmd_benchmark)
 
     _add_bag_parsers(sub)

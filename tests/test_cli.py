@@ -108,7 +108,13 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     out = capsys.readouterr().out
     assert "accuracy floor" in out and "svn" in out and "map" in out
     assert (tmp_path / "demo" / "report" / "summary.csv").exists()
-    assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2"]) == 0
+    assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2",
+                 "--unseen-seeds", "3"]) == 0
+    unseen = (tmp_path / "bench" / "unseen.txt").read_text()
+    per_method, unseen_ratios = unseen.split("\n\n")
+    assert per_method.count("\n") + 1 == 2 + len(BENCH_SCENARIOS) * 4 and " pf " in per_method
+    assert "trans/mht" in unseen_ratios and unseen_ratios.strip().count("\n") == 1 + len(BENCH_SCENARIOS)
+    assert (tmp_path / "bench" / "seed-3" / "results" / "snapshots" / "mht" / "estimates.csv").exists()
     text = (tmp_path / "bench" / "benchmark.txt").read_text()
     table, ratios, weights = text.split("\n\n")
     assert "median vs pf" in table and "cover t/r" in table and " mht " in table

@@ -69,11 +69,12 @@ SVGD (ablation baseline) is the same loop with ``H = I``, ``S = I`` and a fixed 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
 from factors.lie import local, se3_exp, se3_right_jacobian
+from pinpoint_fg.elimination import Linearization
 from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
@@ -179,6 +180,27 @@ class SvnSettings:
     """Mode proposals, Laplace admission and the per-mode floor of hypotheses (:mod:`.svn_modes`)."""
 
 
+@dataclass(frozen=True)
+class _Prediction:
+    """The previous MAP hypothesis at its motion prediction: one more start of its mode's polish (module
+    docstring, step 7; :func:`~pinpoint_fg.trackers.svn_modes.settle`'s ``predicted``)."""
+
+    row: int
+    """The hypothesis."""
+    cam_T_newest: np.ndarray
+    """(4, 4) its newest pose as predicted, before any transport."""
+    prior_mean: np.ndarray
+    """(4, 4) its window prior's mean then: a copy made since replaces it, and the start is dropped."""
+    evidence: float
+    """Its accumulated evidence then (the same check)."""
+    model: Linearization | None = None
+    """Its one-pose window's model at the prediction, from the transport's first linearisation (L = 1 only)."""
+
+    def start(self) -> tuple:
+        """``settle``'s ``predicted``: (row, pose[, model])."""
+        return (self.row, self.cam_T_newest) + (() if self.model is None else (self.model,))
+
+
 class SvnTracker(Tracker):
     """PinPoint's tracker (and, with ``settings`` of SVGD, its gradient-only ablation)."""
 
@@ -208,7 +230,7 @@ class SvnTracker(Tracker):
         self._lin = None  # the transport's final linearisation (reused by the MAP polish)
         self._books: tuple[np.ndarray, np.ndarray] | None = None  # (members, their rep) to share after the push
         self._prev_map: int | None = None  # the last MAP hypothesis, if it survived the pruning
-        self._predicted: tuple | None = None  # (row, predicted pose, prior mean, evidence[, its model]) of _prev_map
+        self._predicted: _Prediction | None = None  # _prev_map at its motion prediction (settle's extra start)
         self._last_map: int | None = None  # the MAP hypothesis of the last step (its window: final_smoothed)
 
     @property
@@ -324,7 +346,7 @@ class SvnTracker(Tracker):
         if self._predicted is not None and self.window.size == 1:
             # the previous MAP hypothesis is still at its prediction: its model there is the settle's start
             # (with one pose per window no transport can move an older pose of that row in between)
-            self._predicted = (*self._predicted, lin.subset([self._predicted[0]]))
+            self._predicted = replace(self._predicted, model=lin.subset([self._predicted.row]))
         found = basins(self.window.newest, lin, self.window.evidence, self.svn.modes)
         admitted = propose(self.window, lin, found, lik, self.svn.modes)
         moved = allot(self.window, found, admitted, self.svn.modes, self.rng, np.asarray(self.svn.jitter_sigma))
@@ -366,8 +388,8 @@ class SvnTracker(Tracker):
             self._books = None
             prev = self._prev_map
             if self.svn.modes.map_from_prediction and prev is not None:
-                self._predicted = (prev, self.window.newest[prev].copy(), self.window.prior_mean[prev].copy(),
-                                   float(self.window.evidence[prev]))
+                self._predicted = _Prediction(prev, self.window.newest[prev].copy(),
+                                              self.window.prior_mean[prev].copy(), float(self.window.evidence[prev]))
             self._jitter_copies()
             proposed, moved = self._propose(lik)
         first = self.frames_seen < self.svn.first_frames
@@ -392,14 +414,14 @@ class SvnTracker(Tracker):
         polished = np.zeros(0, dtype=int)
         predicted, self._predicted = self._predicted, None
         if predicted is not None and (reseeded or not (
-                np.array_equal(self.window.prior_mean[predicted[0]], predicted[2])
-                and self.window.evidence[predicted[0]] == predicted[3])):
+                np.array_equal(self.window.prior_mean[predicted.row], predicted.prior_mean)
+                and self.window.evidence[predicted.row] == predicted.evidence)):
             predicted = None  # the hypothesis was replaced since its prediction
         if self.svn.map_polish_iters > 0:  # every compared mode's best hypothesis moved to its peak
             found, polished, lin_r = settle(self.window, self._lin, found, self.svn.map_polish_iters,
                                             self.svn.polish_decrement, 2 * self.svn.modes.max_modes,
                                             self.svn.modes.map_starts,
-                                            None if predicted is None else (*predicted[:2], *predicted[4:]))
+                                            None if predicted is None else predicted.start())
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])

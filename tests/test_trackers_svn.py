@@ -186,3 +186,57 @@ def test_window_smoothing_reports_lagged_estimate() -> None:
     assert ests[0].smoothed is None and ests[1].smoothed is None
     assert [e.smoothed[0] for e in ests[2:]] == [0, 1, 2]
     assert all(np.linalg.norm(e.smoothed[2][:3, 3] - T[:3, 3]) < 2e-3 for e in ests[2:])
+
+
+@pytest.mark.parametrize("frames_before", [2, 5])
+def test_the_early_stops_last_small_step_is_skipped_with_the_same_decision(frames_before: int) -> None:
+    """``skip_last_step``: the transport stops after the same iterations, where the full loop was before its last
+    (small) step: the poses equal those before that step bit for bit, and that step is below the stop thresholds."""
+    import copy
+    from dataclasses import replace
+
+    T = se3_exp(np.r_[0.2, 0.1, 0.0, 0.0, 0.0, 0.05])
+
+    def obs(k: int) -> Observation:
+        rng = np.random.default_rng(k)  # the same frame for both trackers
+        Tk = T @ se3_exp(np.r_[0.0, 0.0, 0.02 * k, 0.0, 0.0, 0.0])
+        R, t = Tk[:3, :3], Tk[:3, 3]
+        px = CAM.project(NEEDLE.arc_points(40) @ R.T + t) + rng.normal(scale=0.5, size=(40, 2))
+        return Observation(k, k / 30, cam_T_grasper=_grasper(Tk), backbone_px=px,
+                           tip_px=CAM.project(R @ NEEDLE.tip_m + t), tail_px=CAM.project(R @ NEEDLE.tail_m + t))
+
+    tr = _tracker()
+    for k in range(frames_before):
+        tr.step(obs(k))
+    skip, full = copy.deepcopy(tr), copy.deepcopy(tr)
+    full.svn = replace(full.svn, skip_last_step=False)
+    assert skip.svn.skip_last_step
+    before: list[np.ndarray] = []  # the full loop's poses before each of its steps
+    results = {}
+    for name, t in (("skip", skip), ("full", full)):
+        transport = t._transport
+
+        def recorded(max_iters: int, t=t, transport=transport, name=name):
+            move = t.window.move_newest
+            if name == "full":  # on this window only, for the transport only (subsets copy attributes)
+                def recording_move(*args, **kwargs):
+                    before.append(t.window.newest.copy())
+                    return move(*args, **kwargs)
+                t.window.move_newest = recording_move
+            out = transport(max_iters)
+            if name == "full":
+                del t.window.move_newest
+            results[name] = (out[0], t.window.newest.copy(), out[1].copy())
+            return out
+
+        t._transport = recorded
+        t.step(obs(frames_before))
+    (it_s, P_s, v_s), (it_f, P_f, _) = results["skip"], results["full"]
+    assert it_s == it_f < full.svn.iters_later  # the same decision, by the early stop
+    assert len(before) == it_f
+    np.testing.assert_array_equal(P_s, before[-1])  # where the full loop was before its last step
+    last = local(P_s, P_f)
+    assert np.any(last != 0.0)
+    assert np.quantile(np.linalg.norm(last[:, 3:], axis=1), 0.95) < full.svn.stop_trans_m
+    assert np.quantile(np.linalg.norm(last[:, :3], axis=1), 0.95) < full.svn.stop_rot_rad
+    assert np.all(np.isfinite(v_s))

@@ -330,18 +330,34 @@ def floor_hessians(
     return H_fl, H_inv
 
 
+def _spectral_bound(Hs: np.ndarray, fro: np.ndarray) -> np.ndarray:
+    """An upper bound ``(N,)`` of the largest absolute eigenvalue of each symmetric ``Hs (N, d, d)`` with Frobenius
+    norms ``fro`` > 0: ``fro ||U^4||_F^(1/4)``, ``U = Hs / fro``, within a factor ``d^(1/8)`` of it (exact for rank
+    one), since ``||U^4||_F^2 = sum_i (w_i / fro)^8``."""
+    U = Hs / fro[:, None, None]
+    U2 = U @ U
+    U4 = U2 @ U2
+    return fro * np.sqrt(np.sqrt(np.sqrt(np.einsum("nij,nij->n", U4, U4))))
+
+
 def _unfloored(H: np.ndarray, eps: float, fb: np.ndarray, min_info_rel: float
                ) -> tuple[np.ndarray, np.ndarray] | None:
     """``(H_s, H_s^-1)`` (``H_s`` the symmetrised ``H``) when provably no eigenvalue floor of :func:`_floor_eig` binds
     and no row needs the fallback; None otherwise (then the eigen-decomposition decides).
 
-    ``||H_s||_F >= w_max``, so a Cholesky factorisation of ``H_s - eps ||H_s||_F I`` (it succeeds iff that matrix
-    is positive definite) proves ``w_min > eps w_max`` for every row, and ``w_max >= ||H_s||_F / sqrt(d)`` above
-    ``min_info_rel * max(fb)`` proves every row usable: the floored matrix is then ``H_s`` itself, and its inverse
-    by LU the same to round-off. The Laplace evidence and the polish's decrement (floors at 1e-6 and 1e-9 of the
-    largest eigenvalue) never bind on the tracker's Gauss-Newton information, and a batched Cholesky and inverse
-    cost a third of a batched ``eigh`` of 6x6 blocks (measured ~55 vs ~195 us for 50). Where a floor binds (the
-    Stein step's 1e-2, on about half its calls) the test fails and costs one factorisation attempt.
+    ``b = ||H_s||_F ||(H_s / ||H_s||_F)^4||_F^(1/4) >= w_max`` (for symmetric ``H_s``, ``||H_s^k||_F^2 = sum_i w_i^2k
+    >= w_max^2k``; the normalisation keeps the powers from overflowing), so a Cholesky factorisation of
+    ``H_s - eps b I`` (it succeeds iff that matrix is positive definite) proves ``w_min > eps w_max`` for every row,
+    and ``w_max >= ||H_s||_F / sqrt(d)`` above ``min_info_rel * max(fb)`` proves every row usable: the floored
+    matrix is then ``H_s`` itself, and its inverse by LU the same to round-off. The fourth power matters: ``b``
+    exceeds ``w_max`` by ``(sum_i (w_i / w_max)^8)^(1/8)`` (a few per mille on the tracker's matrices) where
+    ``||H_s||_F`` itself exceeds it by ``(sum_i (w_i / w_max)^2)^(1/2)`` (10-50 %): the SVN block of the Stein step
+    (eigenvalues just above its 1e-2 floor, which it almost never needs) passes the sharp test on most calls and
+    failed the Frobenius one on 86 % (normal-01). The Laplace evidence and the polish's decrement (floors at 1e-6
+    and 1e-9 of the largest eigenvalue) never bind on the tracker's Gauss-Newton information, and a batched
+    Cholesky and inverse cost a third of a batched ``eigh`` of 6x6 blocks (measured ~55 vs ~195 us for 50). Where
+    a floor binds (each particle's own block in the Stein step, on 98 % of rows) the test fails and costs one
+    factorisation attempt.
     """
     d = H.shape[-1]
     Hs = 0.5 * (H + np.swapaxes(H, 1, 2))
@@ -351,7 +367,7 @@ def _unfloored(H: np.ndarray, eps: float, fb: np.ndarray, min_info_rel: float
     if not (fro > math.sqrt(d) * min_info_rel * fb.max()).all():
         return None
     try:
-        np.linalg.cholesky(Hs - (eps * fro)[:, None, None] * np.eye(d))
+        np.linalg.cholesky(Hs - (eps * _spectral_bound(Hs, fro))[:, None, None] * np.eye(d))
     except np.linalg.LinAlgError:
         return None
     return Hs, np.linalg.inv(Hs)
@@ -474,10 +490,10 @@ def stein_step(
     else:  # kernel-average
         Wk, c2, rep = K, K.sum(axis=0), 0.0
     Hbar = ((Wk.T @ H_fl.reshape(n, d * d)).reshape(n, d, d) + rep) / c2[:, None, None]
-    # Floored like every H~_j. (A k-weighted sum of the floored H~_j keeps cond <= 1/eps, but the
-    # repulsion term can exceed it, and measured on the tracker it does on most iterations: a bound
-    # that skips this second eigendecomposition never fired, so there is none.)
-    _, Hbar_inv, _ = _floor_eig(Hbar, eps, fallback, 1e-12, want="inverse")
+    # Floored like every H~_j, where the floor binds: on the tracker's blocks it almost never does (their smallest
+    # eigenvalues sit just above it), which a Cholesky test proves without an eigendecomposition (:func:`_unfloored`).
+    unfloored = _unfloored(Hbar, eps, fallback, 1e-12)
+    Hbar_inv = unfloored[1] if unfloored is not None else _floor_eig(Hbar, eps, fallback, 1e-12, want="inverse")[1]
     step = np.einsum("iab,ib->ia", Hbar_inv, phi)
     return SteinStep(step=config.step_size * step, bandwidth=h, kernel=K, velocity=phi)
 

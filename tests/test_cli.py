@@ -10,6 +10,7 @@ import pytest
 
 from pinpoint_fg.cli import main
 from pinpoint_fg.experiments.benchmark import BENCH_SCENARIOS
+from pinpoint_fg.experiments.coverage import CLEAR_SCENARIOS
 from pinpoint_fg.io.result.reader import read_modes, read_result
 
 
@@ -115,6 +116,11 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert per_method.count("\n") + 1 == 2 + len(BENCH_SCENARIOS) * 4 and " pf " in per_method
     assert "trans/mht" in unseen_ratios and unseen_ratios.strip().count("\n") == 1 + len(BENCH_SCENARIOS)
     assert (tmp_path / "bench" / "seed-3" / "results" / "snapshots" / "mht" / "estimates.csv").exists()
+    cover = (tmp_path / "bench" / "coverage.txt").read_text()  # fitted on seed 3, scored on seed 1
+    cover_rows = (tmp_path / "bench" / "coverage.csv").read_text().strip().splitlines()[1:]
+    assert cover.startswith("q95 coverage")
+    assert len(cover_rows) == (15 if "factors (kappa" in cover else 0)
+    assert all(r.split(",")[:2] in ([sc, "1"] for sc in CLEAR_SCENARIOS) for r in cover_rows)
     text = (tmp_path / "bench" / "benchmark.txt").read_text()
     table, ratios, weights = text.split("\n\n")
     assert "median vs pf" in table and "cover t/r" in table and " mht " in table

@@ -395,3 +395,57 @@ def test_floor_hessians_skips_the_eigen_decomposition_only_where_no_floor_binds(
         unusable = H.copy()
         unusable[3] = bad
         assert stein._unfloored(unusable, eps, fb, 1e-12) is None
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1e-3, 1.0, 1e6, 1e150])
+def test_spectral_bound_lies_between_the_largest_eigenvalue_and_d_to_the_eighth_times_it(scale: float) -> None:
+    rng = np.random.default_rng(31)
+    Q = np.linalg.qr(rng.normal(size=(200, 6, 6)))[0]
+    w = rng.normal(size=(200, 6)) * np.exp(rng.uniform(-12, 0, size=(200, 6)))  # indefinite, any spread
+    w[:20] = np.abs(w[:20]).max(axis=1, keepdims=True)  # equal eigenvalues: the bound's loosest case
+    w[20:40, 1:] = 0.0  # rank one: exact
+    Hs = scale * (Q * w[:, None, :]) @ np.swapaxes(Q, 1, 2)
+    Hs = 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+    lam = np.abs(np.linalg.eigvalsh(Hs)).max(axis=1)
+    bound = stein._spectral_bound(Hs, np.sqrt(np.einsum("nij,nij->n", Hs, Hs)))
+    assert np.all(np.isfinite(bound))
+    assert np.all(bound >= lam * (1 - 1e-13)) and np.all(bound <= lam * 6 ** 0.125 * (1 + 1e-13))
+    np.testing.assert_allclose(bound[20:40], lam[20:40], rtol=1e-13)
+    np.testing.assert_allclose(bound[:20], lam[:20] * 6 ** 0.125, rtol=1e-13)
+
+
+def test_floor_hessians_proves_no_floor_binds_where_the_frobenius_bound_could_not() -> None:
+    """Eigenvalues just above the floor with a dominant one: ``eps ||H||_F`` exceeds the smallest eigenvalue, the
+    sharper bound does not, and the Cholesky/LU path gives the reference's matrices."""
+    rng = np.random.default_rng(5)
+    eps = 1e-2
+    Q = np.linalg.qr(rng.normal(size=(50, 6, 6)))[0]
+    w = np.tile(np.r_[1.0, 0.5, 0.4, 0.3, 0.2, 1.05 * eps], (50, 1)) * rng.uniform(0.5, 2.0, size=(50, 1))
+    H = (Q * w[:, None, :]) @ np.swapaxes(Q, 1, 2)
+    fro = np.sqrt(np.einsum("nij,nij->n", H, H))
+    assert np.all(w[:, -1] < eps * fro)  # the Frobenius test would fail every row
+    assert stein._unfloored(H, eps, np.ones(6), 1e-12) is not None
+    (H_fl, H_inv), (H_ref, inv_ref) = floor_hessians(H, eps), floor_hessians_reference(H, eps)
+    np.testing.assert_allclose(H_fl, H_ref, rtol=0, atol=1e-14 * np.abs(H_ref).max())
+    np.testing.assert_allclose(H_inv, inv_ref, rtol=0, atol=1e-12 * np.abs(inv_ref).max())
+
+
+def test_stein_step_inverts_an_unfloored_svn_block_without_a_second_eigendecomposition(monkeypatch) -> None:  # noqa: ANN001
+    """The kernel-weighted SVN block of well-spread particles needs no floor: one eigen-decomposition (each
+    particle's own block) per step, and the step equals the reference's to round-off."""
+    rng = np.random.default_rng(11)
+    n, d = 50, 6
+    scale = np.array([0.09] * 3 + [1e-3] * 3)
+    xi = rng.normal(size=(n, d)) * scale
+    g = rng.normal(size=(n, d)) / scale
+    A = rng.normal(size=(n, d, d)) / scale[None, :, None]
+    H = np.swapaxes(A, 1, 2) @ A
+    cfg = SteinConfig(scale=tuple(scale), bandwidth_floor=1e-3)
+    calls = []
+    eig = stein._floor_eig
+    monkeypatch.setattr(stein, "_floor_eig", lambda *a, **k: calls.append(k.get("want")) or eig(*a, **k))
+    new = stein_step(xi, g, H, cfg)
+    assert calls == ["floored"]
+    ref = stein_step_reference(xi, g, H, cfg)
+    err = np.max(np.abs(new.step - ref.step) / scale, axis=1)
+    assert np.all(err < 1e-9 * (1.0 + np.max(np.abs(ref.step) / scale, axis=1)))

@@ -124,7 +124,10 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
     (``grid_frames`` frames, default all) and ``track``'s wall time against its step latencies;
     written to ``latency.json``, ``latency.txt`` and ``latency_vs_n_l.png``. ``out`` must be new or
     empty unless ``overwrite``. ``unseen_seeds``: after the tables, every scenario again on these seeds
-    (:func:`unseen_table`, under ``out/seed-K``; ``unseen.csv``, ``unseen.txt``), before the latency benchmark.
+    (:func:`unseen_table`, under ``out/seed-K``; ``unseen.csv``, ``unseen.txt``), then the q95 coverage of the clear
+    scenarios with spread factors fitted on the first unseen seed and scored on the other seeds
+    (:func:`pinpoint_fg.experiments.coverage.benchmark_coverage`; ``coverage.txt``, ``coverage.csv``), before the
+    latency benchmark.
     """
     from pinpoint_fg.io.outdir import prepare_output_dir
 
@@ -191,6 +194,13 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
             w.writeheader()
             w.writerows(unseen_rows)
         print(f"\nwrote {out / 'unseen.csv'} and {out / 'unseen.txt'}")
+        from pinpoint_fg.experiments.coverage import benchmark_coverage, write_coverage_csv
+
+        cover_text, cover_rows = benchmark_coverage(out, seed, tuple(unseen_seeds))
+        print("\n" + cover_text)
+        (out / "coverage.txt").write_text(cover_text + "\n")
+        write_coverage_csv(cover_rows, out / "coverage.csv")
+        print(f"\nwrote {out / 'coverage.csv'} and {out / 'coverage.txt'}")
 
     from pinpoint_fg.experiments.latency import latency_tables, plot_grid
 

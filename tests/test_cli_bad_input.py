@@ -246,3 +246,61 @@ def test_a_programming_error_in_a_tracker_is_not_hidden(run: Path, tmp_path: Pat
     monkeypatch.setattr(track_module, "make_tracker", lambda method, config: Buggy(real(method, config), ""))
     with pytest.raises(ValueError, match="not aligned"):
         main(["track", str(run), "--method", "map", "--out", str(tmp_path / "r")])
+
+
+# --- importers and the recording writer: never write a run the reader refuses -------------------------------
+
+@pytest.fixture(scope="module")
+def bop_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from tests.bop_scene import write_bop_scene
+
+    root = tmp_path_factory.mktemp("bop")
+    write_bop_scene(root)
+    return root
+
+
+@pytest.mark.parametrize(("fps", "key"), [("1e308", "frame_rate_hz"), ("1e-300", "t_s")])
+def test_import_bop_refuses_an_fps_the_reader_would_refuse(fps: str, key: str, bop_scene: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    # before: exit 0 and a run whose recording.json / frames.csv did not validate
+    assert main(["import-bop", str(bop_scene / "000001"), "--model", str(bop_scene / "models" / "obj_000007.ply"),
+                 "--obj-id", "7", "--fps", fps, "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert key in line and str(out) in line
+
+
+def test_import_bag_refuses_a_needle_or_tolerance_out_of_range(run: Path, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    bag = tmp_path / "normal.bag"
+    assert main(["export-bag", str(run), "--out", str(bag), "--format", "ros1"]) == 0
+    needle = json.loads((run / "recording.json").read_text())["needle"]
+    needle["radius_m"] = 1e308
+    needle_file = tmp_path / "needle.json"
+    needle_file.write_text(json.dumps(needle))
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(needle_file)]) == 2  # was 0
+    assert "needle.radius_m" in _one_error_line(capsys.readouterr().err)
+    # was OverflowError: cannot convert float infinity to integer
+    assert main(["import-bag", str(bag), "--out", str(tmp_path / "b"), "--needle", str(run / "recording.json"),
+                 "--stamp-tolerance-s", "1e308"]) == 2
+    assert "--stamp-tolerance-s" in _one_error_line(capsys.readouterr().err)
+    assert main(["import-bag", str(bag), "--out", str(tmp_path / "c"), "--needle", str(run / "recording.json"),
+                 "--frame-rate-hz", "1e308"]) == 2  # was 0 and a run that did not validate
+    assert "frame_rate_hz" in _one_error_line(capsys.readouterr().err)
+
+
+def test_writer_refuses_poses_the_reader_would_refuse(run: Path, tmp_path: Path) -> None:
+    from pinpoint_fg.io.recording.reader import read_recording
+    from pinpoint_fg.io.recording.writer import RecordingWriter, replace_ground_truth
+
+    rec = read_recording(run)
+    far = np.eye(4)
+    far[0, 3] = 11.0
+    with RecordingWriter(tmp_path / "w", rec.info) as w, pytest.raises(InputError, match="10 m"):
+        w.add(replace(rec.frames[0], cam_T_grasper=far))
+    copy_run = tmp_path / "run"
+    shutil.copytree(run, copy_run)
+    with pytest.raises(InputError, match="gt_x_m"):
+        replace_ground_truth(copy_run, {0: far})
+    assert not validate_run(copy_run)[1]

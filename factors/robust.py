@@ -39,6 +39,9 @@ import numpy as np
 
 #: Loss names accepted by :class:`RobustLoss`.
 LOSS_KINDS = ("none", "huber", "cauchy")
+#: Largest accepted threshold ``k`` (standard deviations). Beyond it every loss is the Gaussian for any residual
+#: a frame can hold, and ``k^2`` in the formulas would overflow to inf (``1e308`` gave NaN poses).
+MAX_K = 1e6
 
 
 @dataclass(frozen=True)
@@ -54,8 +57,8 @@ class RobustLoss:
         if self.kind not in LOSS_KINDS:
             raise ValueError(f"unknown robust loss {self.kind!r}; choose from {', '.join(LOSS_KINDS)}")
         k = float(self.k)
-        if not (np.isfinite(k) and k > 0):
-            raise ValueError(f"robust threshold k must be a positive finite number, got {self.k!r}")
+        if not (np.isfinite(k) and 0 < k <= MAX_K):
+            raise ValueError(f"robust threshold k must be a positive finite number <= {MAX_K:g}, got {self.k!r}")
         object.__setattr__(self, "k", k)
 
     @classmethod

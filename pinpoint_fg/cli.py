@@ -36,6 +36,35 @@ def _robust_spec(text: str) -> dict:
         raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
+#: Largest accepted seed: the seed is recorded in the output's JSON, whose readers accept int64 integers only.
+MAX_SEED = 2**63 - 1
+
+
+def _int_at_least(low: int, high: int | None = None):
+    """An argparse type: a decimal integer in ``[low, high]`` (a clear usage error, exit 2, otherwise).
+
+    Checked at parse time so a bad count or seed fails before any work (a negative seed used to
+    surface as NumPy's traceback, a seed beyond int64 as a result its own reader refuses).
+    """
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low or (high is not None and value > high):
+            bound = f">= {low}" if high is None else f"in [{low}, {high}]"
+            raise argparse.ArgumentTypeError(f"must be an integer {bound}, got {text!r}")
+        return value
+
+    parse.__name__ = "integer"  # argparse names the type in its own messages
+    return parse
+
+
+_count = _int_at_least(1)
+_seed = _int_at_least(0, MAX_SEED)
+
+
 def _probability(text: str) -> float:
     try:
         p = float(text)
@@ -291,11 +320,11 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="a running Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)")
     s.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
-    s.add_argument("--particles", type=int, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
-    s.add_argument("--window", type=int, default=1, help="window length L (1 = filter)")
+    s.add_argument("--particles", type=_count, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
+    s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
                    help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
@@ -313,8 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="write a simulated recorded run")
     s.add_argument("--scenario", choices=SCENARIOS, default="normal")
-    s.add_argument("--frames", type=int, default=300)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--frames", type=_count, default=300)
+    s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--images", action="store_true", help="also render camera images with the checkerboard")
@@ -330,15 +359,15 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("track", help="track the needle through a recorded run")
     s.add_argument("run", type=Path)
     s.add_argument("--method", choices=METHODS, default="svn")
-    s.add_argument("--particles", type=int, default=None,
+    s.add_argument("--particles", type=_count, default=None,
                    help="default: 50 (svn, svgd), 3000 (pf); mht: the bank size K (4)")
-    s.add_argument("--window", type=int, default=1, help="window length L (1 = filter)")
+    s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
     s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
                    help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none); "
                         "'none' switches all off; default: the noise file's or the built-in defaults")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
                    help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
     s.add_argument("--out", type=Path, required=True)
@@ -377,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--jobs", type=int, default=2)
-    s.add_argument("--frames", type=int, default=None, help="only the first N frames of each run")
+    s.add_argument("--frames", type=_count, default=None, help="only the first N frames of each run")
     s.set_defaults(func=_cmd_ablate)
 
     s = sub.add_parser("import-bop", help="convert a BOP-format scene of a needle into a recorded run")
@@ -398,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="grasp angle in the needle frame (default: a third of the arc from the tail)")
     s.add_argument("--keypoints-from-gt", type=float, default=None, metavar="SIGMA_PX",
                    help="SYNTHETIC keypoints: project tip/tail from the ground truth plus N(0, SIGMA_PX^2) noise")
-    s.add_argument("--seed", type=int, default=0, help="seed of the synthetic keypoint noise")
+    s.add_argument("--seed", type=_seed, default=0, help="seed of the synthetic keypoint noise")
     s.add_argument("--no-images", action="store_true", help="do not copy the images into the run")
     s.add_argument("--name", default=None, help="run name (default: the scene directory's name)")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
@@ -407,19 +436,19 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("demo", help="simulate, track with svn/pf/map, evaluate, print the comparison")
     s.add_argument("--out", type=Path, default=Path("demo-output"))
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
-    s.add_argument("--frames", type=int, default=240)
+    s.add_argument("--frames", type=_count, default=240)
     s.add_argument("--jobs", type=int, default=2)
     s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser("benchmark", help="accuracy and latency of every method on every scenario")
     s.add_argument("--out", type=Path, default=Path("benchmark-output"))
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
-    s.add_argument("--frames", type=int, default=300)
-    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--frames", type=_count, default=300)
+    s.add_argument("--seed", type=_seed, default=1)
     s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")
-    s.add_argument("--grid-frames", type=int, default=150, help="frames of the N x L latency grid")
+    s.add_argument("--grid-frames", type=_count, default=150, help="frames of the N x L latency grid")
     s.add_argument("--quick", action="store_true", help="150 frames per scenario, 100 in the N x L grid")
-    s.add_argument("--unseen-seeds", type=int, nargs="+", default=[], metavar="SEED",
+    s.add_argument("--unseen-seeds", type=_seed, nargs="+", default=[], metavar="SEED",
                    help="also track every scenario on these seeds with svn, pf, map and mht; means over them")
     s.set_defaults(func=_cmd_benchmark)
 

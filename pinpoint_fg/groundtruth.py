@@ -22,10 +22,11 @@ The ``board_to_needle`` file (JSON, written by :func:`write_board_to_needle`)::
 
 Instead of ``board_T_needle`` the pose may be given as ``"xyz_m": [x, y, z]`` and
 ``"quat_wxyz": [w, x, y, z]`` (Hamilton; normalised, rejected if its norm is off by more
-than 1 %). Metres; the board frame is the one of :mod:`pinpoint_fg.checkerboard` (origin at
-the board centre, z into the board). A rotation block within 1e-3 of orthonormal is
-accepted and projected onto SO(3) (hand-typed matrices carry rounding); anything else is an
-:class:`~pinpoint_fg.errors.InputError` naming the file and the key.
+than 1 %). Metres (each translation component at most 10 m, the recording format's bound); the
+board frame is the one of :mod:`pinpoint_fg.checkerboard` (origin at the board centre, z into the
+board). A rotation block within 1e-3 of orthonormal is accepted and projected onto SO(3)
+(hand-typed matrices carry rounding); anything else is an :class:`~pinpoint_fg.errors.InputError`
+naming the file and the key.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from factors.lie import se3_inverse, so3_log
 from pinpoint_fg.checkerboard import DEFAULT_NEEDLE_T_BOARD, BoardSpec, detect_board
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.recording.schema import MAX_ABS_METRES
 
 BOARD_TO_NEEDLE_FORMAT = "pinpoint-board-to-needle"
 BOARD_TO_NEEDLE_VERSION = 1
@@ -144,6 +146,11 @@ def read_board_to_needle(path: str | Path) -> tuple[np.ndarray, BoardSpec]:
         if abs(norm - 1.0) > _QUAT_NORM_TOL:
             raise InputError(f"quaternion norm {norm:.6g} is not 1", file=file, column="quat_wxyz")
         T = pose_from_xyz_quat(xyz, q / norm)
+    offset_m = float(np.max(np.abs(T[:3, 3])))
+    if offset_m > MAX_ABS_METRES:
+        raise InputError(f"translation {offset_m:.6g} m is beyond {MAX_ABS_METRES:g} m (the mount is a few "
+                         "millimetres; it would write gt_* cells the recording format refuses)", file=file,
+                         column="board_T_needle" if has_matrix else "xyz_m")
     spec = BoardSpec()
     if "board" in doc:
         b = doc["board"]

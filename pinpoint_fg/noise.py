@@ -284,20 +284,78 @@ class NoiseConfig:
             if not isinstance(entry, dict) or "cov" not in entry:
                 raise InputError(f'{where} must be an object with "cov" (and optionally "mean")', file=path)
             d = RESIDUAL_DIMS[k]
+            _check_entry_types(entry, where, path)
             try:
                 mean = np.asarray(entry.get("mean", [0.0] * d), dtype=float).reshape(-1)
                 cov = np.atleast_2d(np.asarray(entry["cov"], dtype=float))
-                parsed[k] = ResidualNoise(mean=mean, cov=cov, count=int(entry.get("count", 0)))
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"{where}: {exc}", file=path) from exc
+            _check_cov_asymmetry(cov, where, path)
+            _check_magnitudes(mean, cov, where, path)
+            try:
+                parsed[k] = ResidualNoise(mean=mean, cov=cov, count=entry.get("count", 0))
             except (TypeError, ValueError) as exc:
                 raise InputError(f"{where}: {exc}", file=path) from exc
             if parsed[k].dim != d:
                 raise InputError(f"{where}: dimension {parsed[k].dim}, expected {d}", file=path)
+            lo, hi = NOISE_VARIANCE_RANGE
+            w = np.linalg.eigvalsh(parsed[k].cov)
+            if w[0] < lo or w[-1] > hi:
+                raise InputError(f"{where}: 'cov' has a variance of {w[0] if w[0] < lo else w[-1]:.3g}, accepted "
+                                 f"{lo:g} .. {hi:g} (a standard deviation of 1e-7 to 1e6 in the residual's unit)",
+                                 file=path)
         return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path))
 
     def process_variance_whitened(self, scale: np.ndarray) -> float:
         """``tr(S^-1 Q S^-1) / 6``: the mean per-axis process variance in the kernel's whitened units."""
         s = np.asarray(scale, dtype=float)
         return float(np.trace(self.process_cov / np.outer(s, s)) / 6.0)
+
+
+#: Accepted range of a noise file's variances (eigenvalues of ``cov``), in the residual's unit squared (px, m,
+#: rad): a standard deviation of 1e-7 to 1e6. Below it no measurement is that exact and the whitened residuals
+#: overflowed SVN's log posterior (variance 1e-16: ``log_posterior contains NaN or +inf``); above it, or a
+#: ``|mean|`` beyond :data:`MAX_NOISE_ABS_MEAN`, the file is a unit mistake (``1e308`` gave NaN poses).
+NOISE_VARIANCE_RANGE = (1e-14, 1e12)
+#: Largest accepted ``|mean|`` (bias) of a noise file's residual, in the residual's unit.
+MAX_NOISE_ABS_MEAN = 1e6
+#: Largest accepted ``|cov - cov^T|`` relative to ``max |cov|`` (rounding; a larger asymmetry is a typo that
+#: symmetrising would silently turn into another covariance).
+NOISE_COV_ASYMMETRY_TOL = 1e-9
+
+
+def _check_entry_types(entry: dict, where: str, path: Path) -> None:
+    """JSON types of one ``residuals`` entry: numbers (not booleans) in mean/cov, a non-negative integer count."""
+    def has_bool(x: object) -> bool:
+        return isinstance(x, bool) or (isinstance(x, list) and any(has_bool(y) for y in x))
+
+    for key in ("mean", "cov"):
+        if has_bool(entry.get(key)):
+            raise InputError(f"{where}: {key!r} must hold numbers, not booleans", file=path)
+    count = entry.get("count", 0)
+    if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+        raise InputError(f"{where}: 'count' must be a non-negative integer, got {count!r}", file=path)
+
+
+def _check_cov_asymmetry(cov: np.ndarray, where: str, path: Path) -> None:
+    """Refuse a square ``cov`` that is not symmetric up to rounding."""
+    if cov.ndim != 2 or cov.shape[0] != cov.shape[1] or not np.all(np.isfinite(cov)):
+        return  # ResidualNoise names these problems
+    scale = float(np.max(np.abs(cov))) if cov.size else 0.0
+    if float(np.max(np.abs(cov - cov.T), initial=0.0)) > NOISE_COV_ASYMMETRY_TOL * scale:
+        raise InputError(f"{where}: 'cov' is not symmetric", file=path)
+
+
+def _check_magnitudes(mean: np.ndarray, cov: np.ndarray, where: str, path: Path) -> None:
+    """Refuse entries too large for the maths before they are used (the eigenvalue range is checked after
+    :class:`ResidualNoise` validated the shape): ``|mean|`` above :data:`MAX_NOISE_ABS_MEAN`, ``|cov|`` above
+    the largest accepted variance."""
+    if mean.size and np.all(np.isfinite(mean)) and float(np.max(np.abs(mean))) > MAX_NOISE_ABS_MEAN:
+        raise InputError(f"{where}: 'mean' beyond {MAX_NOISE_ABS_MEAN:g} in absolute value", file=path)
+    hi = NOISE_VARIANCE_RANGE[1]
+    if cov.size and np.all(np.isfinite(cov)) and float(np.max(np.abs(cov))) > hi:
+        raise InputError(f"{where}: 'cov' has an entry beyond {hi:g} (a standard deviation above 1e6 in the "
+                         "residual's unit)", file=path)
 
 
 def _load_robust(rob: object, path: Path) -> dict[str, RobustLoss]:
@@ -312,10 +370,13 @@ def _load_robust(rob: object, path: Path) -> dict[str, RobustLoss]:
         if not isinstance(entry, dict) or not isinstance(entry.get("loss"), str):
             raise InputError(f'{where} must be an object with "loss" (none, huber, cauchy) and optionally "k"',
                              file=path)
+        kind = entry["loss"]
+        default_k = 1.345 if kind == "huber" else 1.0
+        k_value = entry.get("k", default_k)
+        if isinstance(k_value, bool) or not isinstance(k_value, int | float):
+            raise InputError(f'{where}: "k" must be a number, got {k_value!r}', file=path)
         try:
-            kind = entry["loss"]
-            default_k = 1.345 if kind == "huber" else 1.0
-            out[k] = RobustLoss(kind, float(entry.get("k", default_k)))
+            out[k] = RobustLoss(kind, float(k_value))
         except (TypeError, ValueError) as exc:
             raise InputError(f"{where}: {exc}", file=path) from exc
     return out

@@ -160,6 +160,20 @@ def track_recording(
     return out
 
 
+def _numerical_failure(exc: Exception) -> bool:
+    """True for a tracker's numerical breakdown on degenerate input, reported as one line instead of a traceback:
+    GTSAM's indeterminate linear system (a ``RuntimeError``) or non-finite numbers the result writer refuses."""
+    text = str(exc)
+    if isinstance(exc, RuntimeError):
+        return "Indeterminate linear system" in text
+    return "NaN" in text or "infinite" in text
+
+
+def _first_line(exc: Exception) -> str:
+    lines = [s.strip() for s in str(exc).splitlines() if s.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
 def _track(run: str | Path, method: str, out: Path, particles: int | None, window: int,
            noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
            max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
@@ -201,9 +215,15 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
                                                    smoothed=config.window > 1) as writer:
         for obs in tqdm(offload.observations(recording, frames), desc=f"{method} {recording.info.name}",
                         unit="frame", total=len(frames), disable=not show):
-            offload.submit(tracker.step(obs))
-            for row in offload.ready():
-                writer.write(scaled(row))
+            try:
+                offload.submit(tracker.step(obs))
+                for row in offload.ready():
+                    writer.write(scaled(row))
+            except (RuntimeError, ValueError) as exc:
+                if isinstance(exc, InputError) or not _numerical_failure(exc):
+                    raise
+                raise InputError(f"frame {obs.frame}: {method} failed on this input ({_first_line(exc)}); the frames "
+                                 f"before it are in {out}", file=Path(run) / "frames.csv") from exc
         for row in offload.ready(wait=True):
             writer.write(scaled(row))
         final = getattr(tracker, "final_smoothed", None)

@@ -62,7 +62,7 @@ from pinpoint_fg.eval.metrics import pose_errors
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
 from pinpoint_fg.io.result.schema import Result
-from pinpoint_fg.io.spread_scale import LEVEL, MODE_GATE_RAD, MethodScale, SpreadScale, recorded_scale
+from pinpoint_fg.io.spread_scale import KAPPA_RANGE, LEVEL, MODE_GATE_RAD, MethodScale, SpreadScale, recorded_scale
 
 _BOUNDARY_NUDGE = 1e-12
 """Relative increase of the fitted quantile so that ``kappa · q95`` still covers the boundary frame."""
@@ -98,7 +98,11 @@ def scale_quantile(err: np.ndarray, q95: np.ndarray, level: float = LEVEL, what:
     if kappa == 0.0:
         raise InputError(f"the errors are zero on {100 * level:g} % of the frames: the scale is 0, not usable",
                          column=what)
-    return kappa * (1.0 + _BOUNDARY_NUDGE)
+    kappa *= 1.0 + _BOUNDARY_NUDGE
+    if not KAPPA_RANGE[0] <= kappa <= KAPPA_RANGE[1]:
+        raise InputError(f"the scale would be {kappa:.3g}, outside [{KAPPA_RANGE[0]:g}, {KAPPA_RANGE[1]:g}]: these q95 "
+                         "do not describe the errors (a spread-scale file refuses such a factor)", column=what)
+    return kappa
 
 
 # ----------------------------------------------------------------------------- results and their truth

@@ -432,8 +432,8 @@ def import_bag(
     """
     bag, out = Path(bag), Path(out)
     topics = topics or BagTopics()
-    if not math.isfinite(stamp_tolerance_s) or stamp_tolerance_s < 0:
-        raise InputError(f"must be a finite number >= 0, got {stamp_tolerance_s}", column="--stamp-tolerance-s")
+    if not math.isfinite(stamp_tolerance_s) or not 0 <= stamp_tolerance_s <= 1e9:  # 1e308 overflowed the ns
+        raise InputError(f"must be a finite number in [0, 1e9], got {stamp_tolerance_s}", column="--stamp-tolerance-s")
     needle_model = needle if isinstance(needle, NeedleModel) else read_needle_json(needle)
     check_output_dir(out, overwrite, "run")
     data, cam = _read_bag(bag, topics)

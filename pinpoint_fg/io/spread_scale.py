@@ -17,7 +17,7 @@ File format (JSON, UTF-8)::
      "results": ["/path/of/a/training/result", ...]}
 
 Required: ``format``, ``version``, ``level`` in (0, 1), ``mode_gate_rad`` in (0, pi], a non-empty
-``methods`` with finite positive ``kappa_trans`` and ``kappa_rot`` per method. Optional: the counts
+``methods`` with ``kappa_trans`` and ``kappa_rot`` in [1e-6, 1e6] per method. Optional: the counts
 (non-negative integers, default 0), ``coverage_raw_*`` (the training coverage before scaling, in [0, 1]
 or null), ``unfitted`` (method -> reason; such a method is refused when applied, naming the reason) and
 ``results`` (the training results, provenance only). Unknown keys are ignored (forward compatibility).
@@ -149,10 +149,7 @@ class SpreadScale:
                 raise InputError(f"must be an object, got {json_shown(entry)}", file=path, column=key)
             kappa = {}
             for part in PARTS:
-                k = _number(entry, f"kappa_{part}", path, f"{key}.kappa_{part}")
-                if not k > 0.0:
-                    raise InputError(f"must be positive, got {k!r}", file=path, column=f"{key}.kappa_{part}")
-                kappa[part] = k
+                kappa[part] = _kappa(entry, f"kappa_{part}", path, f"{key}.kappa_{part}")
             counts = {c: _count(entry, c, path, f"{key}.{c}") for c in ("frames", "skipped_frames",
                                                                         "wrong_mode_frames")}
             cover = {}
@@ -179,6 +176,22 @@ class SpreadScale:
             raise InputError(f"method {both[0]!r} is both fitted and unfitted", file=path, column=f"unfitted.{both[0]}")
         return cls(methods=parsed, level=level, mode_gate_rad=gate, results=tuple(results), unfitted=dict(unfitted),
                    source=str(path))
+
+
+#: Accepted range of a factor ``kappa``: beyond it the file is a mistake, and ``kappa^2`` times a covariance
+#: overflowed ``track --spread-scale`` (``1e308``: numpy's "Eigenvalues did not converge") while
+#: ``evaluate --spread-scale`` silently reported infinite bounds.
+KAPPA_RANGE = (1e-6, 1e6)
+
+
+def _kappa(doc: dict, key: str, path: Path, column: str) -> float:
+    """A required factor of ``doc`` in :data:`KAPPA_RANGE`."""
+    k = _number(doc, key, path, column)
+    if not k > 0.0:
+        raise InputError(f"must be positive, got {k!r}", file=path, column=column)
+    if not KAPPA_RANGE[0] <= k <= KAPPA_RANGE[1]:
+        raise InputError(f"must lie in [{KAPPA_RANGE[0]:g}, {KAPPA_RANGE[1]:g}], got {k!r}", file=path, column=column)
+    return k
 
 
 def _number(doc: dict, key: str, path: Path, column: str) -> float:
@@ -258,8 +271,5 @@ def recorded_scale(settings: dict, file: str | Path) -> tuple[float, float] | No
         raise InputError(f"must be an object, got {json_shown(entry)}", file=path, column="settings.spread_scale")
     out = []
     for part in PARTS:
-        k = _number(entry, f"kappa_{part}", path, f"settings.spread_scale.kappa_{part}")
-        if not k > 0.0:
-            raise InputError(f"must be positive, got {k!r}", file=path, column=f"settings.spread_scale.kappa_{part}")
-        out.append(k)
+        out.append(_kappa(entry, f"kappa_{part}", path, f"settings.spread_scale.kappa_{part}"))
     return out[0], out[1]

@@ -152,6 +152,8 @@ def image_file_problem(path: Path, width: int | None, height: int | None, png_on
         data = path.read_bytes()
     except OSError as exc:
         return f"cannot read {path}: {exc.strerror or exc}"
+    if not data:
+        return f"{path}: empty file (0 bytes)"  # cv2.imdecode raises on an empty buffer instead of returning None
     if data.startswith(_PNG_SIGNATURE):
         try:
             w, h = check_png(data, None if width is None or height is None else (width, height))
@@ -178,6 +180,8 @@ def decode_image(path: Path, width: int | None, height: int | None, png_only: bo
         data = path.read_bytes()
     except OSError as exc:
         raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if not data:
+        raise ValueError(f"{path}: empty file (0 bytes)")
     if data.startswith(_PNG_SIGNATURE):
         try:
             check_png(data, None if width is None or height is None else (width, height))

@@ -28,6 +28,8 @@ from pinpoint_fg.io.recording.schema import (
     INFO_KEYS,
     INTEGER_CELL,
     KNOWN_COLUMNS,
+    MAX_ABS_METRES,
+    MAX_ABS_TIME_S,
     NEEDLE_KEYS,
     OCCLUSION_LABELS,
     RECORDING_JSON,
@@ -36,6 +38,7 @@ from pinpoint_fg.io.recording.schema import (
     path_problem,
     shown,
 )
+from pinpoint_fg.io.recording.validator import _parse_info
 
 
 def _num_cell(x: float) -> str:
@@ -57,6 +60,15 @@ def check_pose(name: str, T: Any) -> np.ndarray:
     return a
 
 
+def _recordable_pose(name: str, T: Any, column: str) -> np.ndarray:
+    """:func:`check_pose`, and within the format's :data:`MAX_ABS_METRES` of the camera (the reader refuses
+    more: ``groundtruth`` with a 1e300 m mount rewrote a run into one that no longer validated)."""
+    a = check_pose(name, T)
+    if float(np.max(np.abs(a[:3, 3]))) > MAX_ABS_METRES:
+        raise InputError(f"{name} lies beyond the format's {MAX_ABS_METRES:g} m of the camera", column=column)
+    return a
+
+
 def _pose_cells(T: np.ndarray) -> list[str]:
     """``x y z qw qx qy qz`` cells of a pose (quaternion with w >= 0)."""
     xyz, q = xyz_quat_from_pose(T)
@@ -70,6 +82,9 @@ def _row_cells(rec: FrameRecord) -> dict[str, str]:
         raise ValueError(f"FrameRecord.frame must be a non-negative integer, got {frame!r}")
     if not math.isfinite(float(rec.t_s)):
         raise ValueError(f"frame {frame}: t_s must be finite, got {rec.t_s!r}")
+    if abs(float(rec.t_s)) > MAX_ABS_TIME_S:  # the reader refuses it (an importer's --fps 1e-300 wrote 7e300)
+        raise InputError(f"frame {frame}: {float(rec.t_s):g} s is beyond the format's +-{MAX_ABS_TIME_S:g} s",
+                         column="t_s")
     cells = {c: "" for c in KNOWN_COLUMNS}
     cells["frame"] = str(int(frame))
     cells["t_s"] = _num_cell(rec.t_s)
@@ -84,7 +99,7 @@ def _row_cells(rec: FrameRecord) -> dict[str, str]:
                        ("cam_T_needle_gt", COLUMN_GROUPS["ground_truth"])):
         v = getattr(rec, name)
         if v is not None:
-            cells.update(zip(cols, _pose_cells(check_pose(f"frame {frame}: {name}", v)), strict=True))
+            cells.update(zip(cols, _pose_cells(_recordable_pose(f"frame {frame}: {name}", v, cols[0])), strict=True))
     for name in ("mask", "image"):
         v = getattr(rec, name)
         if v is not None:
@@ -119,6 +134,19 @@ def _info_to_json(info: RecordingInfo) -> dict[str, Any]:
         "needle": {k: float(getattr(needle, k)) for k in NEEDLE_KEYS},
     })
     return doc
+
+
+def _check_info_doc(doc: dict[str, Any], target: Path) -> None:
+    """Refuse a ``recording.json`` the reader would refuse, before anything is written: the reader's own
+    checks on a temporary copy; the first problem as an :class:`InputError` naming ``target`` and the key.
+    (Importers wrote ``--fps 1e308`` or a 1e308 m needle and exited 0 with a run that did not validate.)"""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / RECORDING_JSON
+        path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        errors: list[InputError] = []
+        _parse_info(path, errors)
+    if errors:
+        raise InputError(errors[0].reason, file=target, column=errors[0].column)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -170,6 +198,7 @@ class RecordingWriter:
         self.run_dir = Path(run_dir)
         self.info = info
         doc = _info_to_json(info)
+        _check_info_doc(doc, self.run_dir / RECORDING_JSON)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.run_dir / RECORDING_JSON, json.dumps(doc, indent=2) + "\n")
         self._fh = open(self.run_dir / FRAMES_CSV, "w", encoding="utf-8", newline="")
@@ -205,7 +234,10 @@ class RecordingWriter:
         if self._last_frame is not None and int(frame.frame) <= self._last_frame:
             raise ValueError(f"frame {frame.frame} is not greater than the previous frame {self._last_frame}")
         width, height = int(self.info.camera.width), int(self.info.camera.height)
-        cells = _row_cells(frame)  # validate before writing any file
+        try:
+            cells = _row_cells(frame)  # validate before writing any file
+        except InputError as exc:
+            raise InputError(exc.reason, file=self.run_dir / FRAMES_CSV, column=exc.column) from None
         todo = (("mask", mask, _mask_to_png_array), ("image", image, _image_to_png_array))
         for name, array, convert in todo:
             if array is None:
@@ -262,7 +294,7 @@ def replace_ground_truth(run_dir: str | Path, gt_by_frame: dict[int, np.ndarray 
     csv_path = Path(run_dir) / FRAMES_CSV
     gt_cols = COLUMN_GROUPS["ground_truth"]
     new_cells = {
-        int(k): (None if v is None else _pose_cells(check_pose(f"ground truth of frame {k}", v)))
+        int(k): (None if v is None else _pose_cells(_recordable_pose(f"ground truth of frame {k}", v, "gt_x_m")))
         for k, v in gt_by_frame.items()
     }
     try:

@@ -1,0 +1,306 @@
+"""A new user's bad input, end to end: every case here was a traceback, a wrong exit code or a silently wrong
+number before its fix (the audit of this file's commit). Each must now give exit code 2 and one line naming
+the file and the key (or a usage error naming the flag) before any work starts."""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from factors.robust import RobustLoss
+from pinpoint_fg import track as track_module
+from pinpoint_fg.cli import main
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.eval.spread_calibration import scale_quantile
+from pinpoint_fg.groundtruth import read_board_to_needle, write_board_to_needle
+from pinpoint_fg.io.recording.png import decode_image
+from pinpoint_fg.io.recording.validator import validate_run
+from pinpoint_fg.io.result.reader import read_result
+from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
+from pinpoint_fg.noise import NoiseConfig
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("bad-input") / "run"
+    assert main(["simulate", "--scenario", "normal", "--frames", "8", "--seed", "1", "--images",
+                 "--out", str(out)]) == 0
+    return out
+
+
+def _one_error_line(err: str) -> str:
+    lines = [s for s in err.splitlines() if s.strip()]
+    assert "Traceback" not in err
+    assert lines and lines[-1].startswith(("error:", "pinpoint-fg")), err
+    return lines[-1]
+
+
+# --- counts and seeds: refused by the parser (a usage error, exit 2), before any work --------------------
+
+BAD_ARGS = [
+    (["simulate", "--frames", "0"], "--frames"),          # was ValueError traceback from the simulator
+    (["simulate", "--frames", "-3"], "--frames"),
+    (["simulate", "--seed", "-1"], "--seed"),              # was ValueError traceback
+    (["simulate", "--seed", str(2**63)], "--seed"),        # was accepted: recording.json then unreadable
+    (["track", "RUN", "--particles", "0"], "--particles"),  # was ValueError traceback from tracker_config
+    (["track", "RUN", "--window", "0"], "--window"),
+    (["track", "RUN", "--seed", "-1"], "--seed"),          # was NumPy's "expected non-negative integer" traceback
+    (["track", "RUN", "--seed", str(2**64)], "--seed"),    # was accepted: result.json then unreadable
+    (["batch", "RUN", "--particles", "-1"], "--particles"),
+    (["batch", "RUN", "--seed", "-1"], "--seed"),
+    (["demo", "--frames", "0"], "--frames"),
+    (["benchmark", "--frames", "0"], "--frames"),
+    (["benchmark", "--unseen-seeds", "-1"], "--unseen-seeds"),  # was refused only after the main benchmark
+    (["benchmark", "--grid-frames", "0"], "--grid-frames"),
+    (["ablate", "RUN", "--frames", "0"], "--frames"),
+    (["import-bop", "SCENE", "--model", "M.ply", "--obj-id", "1", "--seed", "-1"], "--seed"),
+    (["track", "RUN", "--robust", "conic=cauchy:1e308"], "--robust"),  # was NaN poses -> ValueError traceback
+]
+
+
+@pytest.mark.parametrize(("argv", "flag"), BAD_ARGS, ids=[" ".join(a) for a, _ in BAD_ARGS])
+def test_bad_counts_seeds_and_thresholds_are_usage_errors(argv: list[str], flag: str, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exc:
+        main([*(str(tmp_path / a) if a in ("RUN", "SCENE") else a for a in argv), "--out", str(out)])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert flag in line
+    assert not out.exists()  # refused before any work
+
+
+def test_robust_threshold_is_bounded() -> None:
+    with pytest.raises(ValueError, match="<= 1e"):
+        RobustLoss("cauchy", 1e308)
+    assert RobustLoss("cauchy", 1e6).k == 1e6  # the largest accepted
+
+
+# --- noise files -----------------------------------------------------------------------------------------
+
+def _noise_doc() -> dict:
+    return copy.deepcopy(NoiseConfig().to_json())
+
+
+def _tip(doc: dict) -> dict:
+    return doc["residuals"]["tip"]
+
+
+NOISE_CASES = {
+    # a traceback before (NaN poses / overflow in the maths)
+    "variance 1e-300": lambda d: _tip(d).update(cov=[[1e-300, 0.0], [0.0, 1e-300]]),
+    "mean 1e308": lambda d: _tip(d).update(mean=[1e308, 0.0]),
+    "robust k 1e308": lambda d: d["robust"].update(conic={"loss": "cauchy", "k": 1e308}),
+    # silently accepted before
+    "variance 1e308": lambda d: _tip(d).update(cov=[[1e308, 0.0], [0.0, 1e308]]),
+    "asymmetric cov": lambda d: _tip(d).update(cov=[[1.0, 0.9], [-0.9, 1.0]]),  # was symmetrised to I
+    "boolean in cov": lambda d: _tip(d).update(cov=[[True, 0.0], [0.0, 1.0]]),
+    "fractional count": lambda d: _tip(d).update(count=2.5),
+    "negative count": lambda d: _tip(d).update(count=-5),
+    "string k": lambda d: d["robust"].update(conic={"loss": "cauchy", "k": "3"}),
+}
+
+
+@pytest.mark.parametrize("case", list(NOISE_CASES))
+def test_noise_file_refuses_values_it_used_to_take(case: str, tmp_path: Path) -> None:
+    doc = _noise_doc()
+    NOISE_CASES[case](doc)
+    path = tmp_path / "noise.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as exc:
+        NoiseConfig.load(path)
+    assert str(exc.value).startswith(str(path)) and ("residuals.tip" in str(exc.value) or "robust.conic" in
+                                                      str(exc.value))
+    assert str(exc.value).count(str(path)) == 1
+
+
+def test_noise_file_keeps_accepting_what_calibrate_writes(tmp_path: Path) -> None:
+    path = tmp_path / "noise.json"
+    NoiseConfig().save(path)
+    assert NoiseConfig.load(path).residuals["tip"].count == 0
+    doc = _noise_doc()
+    _tip(doc).update(cov=[[1.0, 0.3], [0.3 + 1e-17, 2.0]], count=12)  # rounding asymmetry is fine
+    path.write_text(json.dumps(doc))
+    assert NoiseConfig.load(path).residuals["tip"].count == 12
+
+
+def test_track_with_a_bad_noise_file_is_one_line(run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    doc = _noise_doc()
+    _tip(doc).update(cov=[[1e-300, 0.0], [0.0, 1e-300]])
+    path = tmp_path / "noise.json"
+    path.write_text(json.dumps(doc))
+    assert main(["track", str(run), "--method", "map", "--noise", str(path), "--out", str(tmp_path / "r")]) == 2
+    assert "residuals.tip" in _one_error_line(capsys.readouterr().err)
+
+
+# --- spread-scale files ---------------------------------------------------------------------------------
+
+def _scale_doc(kappa: float) -> dict:
+    return {"format": "pinpoint-spread-scale", "version": 1, "level": 0.95, "mode_gate_rad": 0.5,
+            "methods": {"map": {"kappa_trans": kappa, "kappa_rot": 1.0}}}
+
+
+@pytest.mark.parametrize("kappa", [1e308, 1e-308])
+def test_spread_scale_factor_is_bounded(kappa: float, run: Path, tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "scale.json"
+    path.write_text(json.dumps(_scale_doc(kappa)))
+    with pytest.raises(InputError, match="methods.map.kappa_trans"):
+        SpreadScale.load(path)
+    with pytest.raises(InputError, match="settings.spread_scale.kappa_trans"):
+        recorded_scale({"spread_scale": {"kappa_trans": kappa, "kappa_rot": 1.0}}, tmp_path / "result.json")
+    # 1e308 was numpy's "Eigenvalues did not converge" traceback in track
+    assert main(["track", str(run), "--method", "map", "--spread-scale", str(path), "--out", str(tmp_path / "r")]) == 2
+    assert "kappa_trans" in _one_error_line(capsys.readouterr().err)
+
+
+def test_spread_fit_refuses_a_factor_its_file_could_not_hold() -> None:
+    # q95 of ~1e-18 with millimetre errors (a one-particle set) made kappa ~1e15, written and then unreadable
+    with pytest.raises(InputError, match="outside"):
+        scale_quantile(np.full(10, 1e-3), np.full(10, 3.5e-18))
+    assert scale_quantile(np.full(10, 1e-3), np.full(10, 1e-3)) == pytest.approx(1.0)
+
+
+# --- images --------------------------------------------------------------------------------------------
+
+def test_zero_byte_camera_image_is_a_located_error(run: Path, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "run"
+    shutil.copytree(run, bad)
+    (bad / "images" / "000003.png").write_bytes(b"")  # cv2.imdecode raised cv2.error on the empty buffer
+    _, errors = validate_run(bad)
+    assert len(errors) == 1 and "000003.png" in str(errors[0]) and "empty" in str(errors[0])
+    with pytest.raises(ValueError, match="empty"):
+        decode_image(bad / "images" / "000003.png", None, None, png_only=False)
+    assert main(["track", str(bad), "--method", "map", "--out", str(tmp_path / "r")]) == 2
+    assert "column 'image'" in _one_error_line(capsys.readouterr().err)
+
+
+# --- groundtruth ------------------------------------------------------------------------------------------
+
+def test_groundtruth_refuses_a_mount_that_would_break_the_run(run: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    board = tmp_path / "b2n.json"
+    write_board_to_needle(board)
+    doc = json.loads(board.read_text())
+    doc["board_T_needle"][0][3] = 1e300
+    board.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="board_T_needle"):
+        read_board_to_needle(board)
+    copy_run = tmp_path / "run"
+    shutil.copytree(run, copy_run)
+    before = (copy_run / "frames.csv").read_bytes()
+    # before: exit 0, and every gt_* cell rewritten to ~1e300, so the run no longer validated
+    assert main(["groundtruth", str(copy_run), "--board-to-needle", str(board)]) == 2
+    assert "board_T_needle" in _one_error_line(capsys.readouterr().err)
+    assert (copy_run / "frames.csv").read_bytes() == before
+    assert not validate_run(copy_run)[1]
+
+
+# --- a tracker's numerical breakdown -----------------------------------------------------------------------
+
+class _Breaks:
+    """The real map tracker until frame 3, then a failure of the kind seen on degenerate input."""
+
+    def __init__(self, inner, how: str) -> None:
+        self.inner, self.how = inner, how
+
+    def __getattr__(self, name: str):
+        return getattr(self.inner, name)
+
+    def step(self, obs):
+        est = self.inner.step(obs)
+        if obs.frame < 3:
+            return est
+        if self.how == "gtsam":  # what GTSAM raised with a principal point 10 images off (cx = -10000)
+            raise RuntimeError("\nIndeterminate linear system detected while working near variable\n9 (Symbol: 9).")
+        return replace(est, log_posterior=np.full_like(np.asarray(est.log_posterior, dtype=float), np.inf))
+
+
+@pytest.mark.parametrize("how", ["gtsam", "nonfinite"])
+def test_tracker_breakdown_is_one_line_and_keeps_finished_frames(how: str, run: Path, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    real = track_module.make_tracker
+    monkeypatch.setattr(track_module, "make_tracker", lambda method, config: _Breaks(real(method, config), how))
+    out = tmp_path / "r"
+    assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "frames.csv" in line and "map failed" in line
+    assert read_result(out).frame.tolist() == [0, 1, 2]
+
+
+def test_a_programming_error_in_a_tracker_is_not_hidden(run: Path, tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    class Buggy(_Breaks):
+        def step(self, obs):
+            raise ValueError("shapes (3,) and (4,) not aligned")
+
+    real = track_module.make_tracker
+    monkeypatch.setattr(track_module, "make_tracker", lambda method, config: Buggy(real(method, config), ""))
+    with pytest.raises(ValueError, match="not aligned"):
+        main(["track", str(run), "--method", "map", "--out", str(tmp_path / "r")])
+
+
+# --- importers and the recording writer: never write a run the reader refuses -------------------------------
+
+@pytest.fixture(scope="module")
+def bop_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from tests.bop_scene import write_bop_scene
+
+    root = tmp_path_factory.mktemp("bop")
+    write_bop_scene(root)
+    return root
+
+
+@pytest.mark.parametrize(("fps", "key"), [("1e308", "frame_rate_hz"), ("1e-300", "t_s")])
+def test_import_bop_refuses_an_fps_the_reader_would_refuse(fps: str, key: str, bop_scene: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    # before: exit 0 and a run whose recording.json / frames.csv did not validate
+    assert main(["import-bop", str(bop_scene / "000001"), "--model", str(bop_scene / "models" / "obj_000007.ply"),
+                 "--obj-id", "7", "--fps", fps, "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert key in line and str(out) in line
+
+
+def test_import_bag_refuses_a_needle_or_tolerance_out_of_range(run: Path, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    bag = tmp_path / "normal.bag"
+    assert main(["export-bag", str(run), "--out", str(bag), "--format", "ros1"]) == 0
+    needle = json.loads((run / "recording.json").read_text())["needle"]
+    needle["radius_m"] = 1e308
+    needle_file = tmp_path / "needle.json"
+    needle_file.write_text(json.dumps(needle))
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(needle_file)]) == 2  # was 0
+    assert "needle.radius_m" in _one_error_line(capsys.readouterr().err)
+    # was OverflowError: cannot convert float infinity to integer
+    assert main(["import-bag", str(bag), "--out", str(tmp_path / "b"), "--needle", str(run / "recording.json"),
+                 "--stamp-tolerance-s", "1e308"]) == 2
+    assert "--stamp-tolerance-s" in _one_error_line(capsys.readouterr().err)
+    assert main(["import-bag", str(bag), "--out", str(tmp_path / "c"), "--needle", str(run / "recording.json"),
+                 "--frame-rate-hz", "1e308"]) == 2  # was 0 and a run that did not validate
+    assert "frame_rate_hz" in _one_error_line(capsys.readouterr().err)
+
+
+def test_writer_refuses_poses_the_reader_would_refuse(run: Path, tmp_path: Path) -> None:
+    from pinpoint_fg.io.recording.reader import read_recording
+    from pinpoint_fg.io.recording.writer import RecordingWriter, replace_ground_truth
+
+    rec = read_recording(run)
+    far = np.eye(4)
+    far[0, 3] = 11.0
+    with RecordingWriter(tmp_path / "w", rec.info) as w, pytest.raises(InputError, match="10 m"):
+        w.add(replace(rec.frames[0], cam_T_grasper=far))
+    copy_run = tmp_path / "run"
+    shutil.copytree(run, copy_run)
+    with pytest.raises(InputError, match="gt_x_m"):
+        replace_ground_truth(copy_run, {0: far})
+    assert not validate_run(copy_run)[1]

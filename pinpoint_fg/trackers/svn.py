@@ -268,6 +268,11 @@ class SvnTracker(Tracker):
         else:
             self.window.reset_newest(particles, FIRST_PRIOR_SIGMA)
 
+    def _small(self, delta: np.ndarray) -> bool:
+        """The early stop's test of steps ``delta (N, 6)``: 95th percentiles below 0.1 mm and 0.5 deg (the settings)."""
+        q_tra, q_rot = quantile_rows(_step_lengths(delta), 0.95)  # = np.quantile(., 0.95, axis=1), cheaper
+        return bool(q_tra < self.svn.stop_trans_m and q_rot < self.svn.stop_rot_rad)
+
     def _transport(self, max_iters: int) -> tuple[int, np.ndarray]:
         """Run the Stein iterations; returns (iterations, negative log-posterior (N,))."""
         s = self.svn
@@ -289,8 +294,7 @@ class SvnTracker(Tracker):
             step = S * stein_step(xi / S, grad_logp * S, hess * np.outer(S, S), self.stein).step
             delta = np.einsum("nij,nj->ni", Jr, step)
             if s.skip_last_step and quiet + 1 >= s.stop_quiet and s.stop_logp == float("inf"):
-                q_tra, q_rot = quantile_rows(_step_lengths(delta), 0.95)
-                if q_tra < s.stop_trans_m and q_rot < s.stop_rot_rad:
+                if self._small(delta):
                     self._lin = lin
                     return iterations, value + self.window.evidence
             # safeguard: halve steps whose particle's cost would collapse
@@ -308,8 +312,7 @@ class SvnTracker(Tracker):
             delta = delta * scale[:, None]
             self.window.move_newest(delta, lin, newest=trial)
             best = -float(np.min(value + self.window.evidence))
-            q_tra, q_rot = quantile_rows(_step_lengths(delta), 0.95)  # = np.quantile(., 0.95, axis=1), cheaper
-            small = q_tra < s.stop_trans_m and q_rot < s.stop_rot_rad
+            small = self._small(delta)
             steady = s.stop_logp == float("inf") or (best_prev is not None and abs(best - best_prev) < s.stop_logp)
             quiet = quiet + 1 if (small and steady) else 0
             best_prev = best

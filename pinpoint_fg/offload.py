@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import threading
 import time
 from collections import deque
@@ -34,6 +35,10 @@ from pinpoint_fg.posterior.summary import modes_of_estimate, posterior_columns
 
 #: Frames whose observations the worker prepares ahead of the tracker.
 OBSERVE_AHEAD = 3
+#: Rows left to the workers at the end of a run from which this process makes the unstarted ones itself even
+#: though it has not loaded scikit-learn: the import (~0.35 s) costs about as much as the workers' backlog of
+#: this many rows shared between two processes (a verdict takes 20-30 ms).
+INLINE_BACKLOG = 30
 
 
 def bimodality_verdict(particles: np.ndarray, T_map: np.ndarray, weights: np.ndarray | None) -> bool:
@@ -170,8 +175,11 @@ class Offload:
 
     def ready(self, wait: bool = False) -> list[Estimate]:
         """Rows that are in, in submission order. With ``wait`` all of them: those the workers have not started
-        are made here, alongside the ones they are working on; one a worker failed on is made again here."""
-        if wait:
+        are made here, alongside the ones they are working on, when this process has scikit-learn loaded or the
+        backlog is at least :data:`INLINE_BACKLOG` (otherwise the workers finish them: importing it here cost
+        0.2-0.35 s per run for a backlog of a few rows); one a worker failed on is made again here."""
+        if wait and ("sklearn.mixture" in sys.modules or sum(isinstance(r, tuple) for r in self.pending)
+                     >= INLINE_BACKLOG):
             self.pending = [to_frame_estimate(row[0]) if isinstance(row, tuple) and row[1].cancel() else row
                             for row in self.pending]
         out = []

@@ -182,7 +182,9 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
 
     ``scale``: :func:`~pinpoint_fg.io.spread_scale.settings_entry` of the spread scale, or None.
     """
-    recording = read_recording(run)
+    # every mask is decoded through decode_image, whose check inflates it first (in the observer, beside the
+    # tracker): inflating all of them here too made reading ~0.3 s of a 100-frame run's 3 s (1080 x 1080 masks)
+    recording = read_recording(run, inflate=False)
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
     if robust is not None:
         noise = (noise or NoiseConfig()).with_robust(robust)

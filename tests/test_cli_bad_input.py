@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import json
 import shutil
+import zlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -180,6 +181,36 @@ def test_zero_byte_camera_image_is_a_located_error(run: Path, tmp_path: Path,
         decode_image(bad / "images" / "000003.png", None, None, png_only=False)
     assert main(["track", str(bad), "--method", "map", "--out", str(tmp_path / "r")]) == 2
     assert "column 'image'" in _one_error_line(capsys.readouterr().err)
+
+
+def _corrupt_under_valid_crcs(png: Path) -> None:
+    """Replace the PNG's image data by a sound zlib stream of the wrong length, with valid CRCs: only inflating
+    the data finds it."""
+    data = png.read_bytes()
+    i = data.index(b"IDAT") - 4
+    n = int.from_bytes(data[i : i + 4], "big")
+    payload = zlib.compress(b"\x00" * 10)
+    chunk = b"IDAT" + payload
+    png.write_bytes(data[:i] + len(payload).to_bytes(4, "big") + chunk + zlib.crc32(chunk).to_bytes(4, "big")
+                    + data[i + 12 + n :])
+
+
+def test_track_reports_mask_data_corrupt_under_valid_crcs_at_its_frame(run: Path, tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """``track`` reads without inflating masks (every decode inflates first): the corrupt data is still one located
+    line, exit 2, raised at its frame with the frames before it on disk; ``validate`` finds it before any work."""
+    bad = tmp_path / "run"
+    shutil.copytree(run, bad)
+    png = bad / "masks" / "000006.png"
+    _corrupt_under_valid_crcs(png)
+    _, errors = validate_run(bad)
+    assert len(errors) == 1 and "000006.png" in str(errors[0]) and "image data" in str(errors[0])
+    assert not validate_run(bad, inflate=False)[1]
+    out = tmp_path / "r"
+    assert main(["track", str(bad), "--method", "map", "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "frames.csv" in line and "row 7" in line and "column 'mask'" in line and "000006.png" in line
+    assert read_result(out).frame.tolist() == [0, 1, 2, 3, 4, 5]
 
 
 # --- groundtruth ------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import csv
 import io
 import multiprocessing as mp
 import os
+import sys
 from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
 from pathlib import Path
 
@@ -103,6 +104,32 @@ def test_offload_writes_rows_in_frame_order_whoever_computes_them(run: Path) -> 
     assert [r.frame for r in rows] == [e.frame for e in ests]
     assert [r.bimodal for r in rows] == [to_frame_estimate(e).bimodal for e in ests]
     assert offload.pending == []
+
+
+@pytest.mark.parametrize("loaded", [False, True])
+def test_the_end_of_a_run_leaves_a_short_backlog_to_the_worker_unless_scikit_learn_is_loaded_here(
+        run: Path, loaded: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """At the end, rows the worker has not started are made here only when that costs no scikit-learn import
+    (~0.35 s): without it a short backlog is waited for, not cancelled; the rows are the same either way."""
+    import sklearn.mixture  # noqa: F401 - loaded, so that removing it from sys.modules below means "not loaded"
+
+    recording = read_recording(run)
+    tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
+    ests = [tracker.step(observe_frame(recording, r)) for r in recording.frames]
+    expected = [to_frame_estimate(e).bimodal for e in ests]
+    if not loaded:
+        monkeypatch.delitem(sys.modules, "sklearn.mixture")
+    offload = Offload(1, 200)
+    try:
+        for e in ests:
+            offload.submit(e)
+        futures = [row[1] for row in offload.pending]
+        rows = offload.ready(wait=True)
+    finally:
+        offload.close(failed=False)
+    assert len(futures) == len(ests)
+    assert any(f.cancelled() for f in futures) == loaded  # the worker is still importing: nothing has started
+    assert [r.bimodal for r in rows] == expected
 
 
 def test_track_leaves_the_callers_thread_pools_alone(run: Path, tmp_path: Path) -> None:

@@ -9,9 +9,11 @@ from pinpoint_fg.io.recording.schema import OCCLUSION_LABELS, Recording
 from pinpoint_fg.io.recording.validator import validate_run
 
 
-def read_recording(path: str | Path) -> Recording:
-    """Read and validate a run directory; raise the first :class:`InputError` found."""
-    recording, errors = validate_run(path)
+def read_recording(path: str | Path, inflate: bool = True) -> Recording:
+    """Read and validate a run directory; raise the first :class:`InputError` found.
+
+    ``inflate`` False: PNGs' compressed data is checked only when decoded (:func:`validate_run`)."""
+    recording, errors = validate_run(path, inflate)
     if errors:
         raise errors[0]
     assert recording is not None

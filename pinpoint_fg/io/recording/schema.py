@@ -34,6 +34,8 @@ Decisions the format leaves open (stated here so readers and writers agree):
   which catches truncated, bit-flipped and corrupt-but-CRC-valid files before libpng sees them
   (libpng would print its complaint to stderr). Every decode goes through
   :func:`pinpoint_fg.io.recording.png.decode_image`, which runs the same check before ``cv2.imdecode``.
+  ``track`` reads a run without inflating (``read_recording(run, inflate=False)``): it decodes every mask it
+  uses that way, so data corrupt under valid CRCs is reported at its frame, with the frames before it written.
 * Keypoints outside the image are not rejected (a detector's business, not the format's).
 """
 

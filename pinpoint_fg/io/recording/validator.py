@@ -250,9 +250,11 @@ def _parse_pose(ctx: _RowContext, cols: tuple[str, ...], values: list[float]) ->
 
 
 def _parse_frames(
-    root: Path, csv_path: Path, info: RecordingInfo | None, errors: list[InputError]
+    root: Path, csv_path: Path, info: RecordingInfo | None, errors: list[InputError], inflate: bool = True
 ) -> list[FrameRecord] | None:
-    """Validate ``frames.csv`` (and the files it names); append every problem to ``errors``."""
+    """Validate ``frames.csv`` (and the files it names); append every problem to ``errors``.
+
+    ``inflate``: PNGs' compressed data is inflated and checked too (:func:`validate_run`)."""
     n_before = len(errors)
     try:
         fh = open(csv_path, encoding="utf-8-sig", newline="")
@@ -311,7 +313,7 @@ def _parse_frames(
                     ctx.err(f"has {len(cells)} cells but the header has {len(header)}", None)
                     continue
                 cell = {name: cells[i].strip() for name, i in col.items()}
-                rec = _parse_row(ctx, cell, groups, root_resolved, width, height, file_checked)
+                rec = _parse_row(ctx, cell, groups, root_resolved, width, height, file_checked, inflate)
                 if ctx.frame is not None:
                     if prev_frame is not None and ctx.frame <= prev_frame[0]:
                         ctx.err(
@@ -352,8 +354,10 @@ def _parse_row(
     width: int | None,
     height: int | None,
     file_checked: dict[tuple[Path, bool], str | None],
+    inflate: bool = True,
 ) -> FrameRecord | None:
-    """One data row -> FrameRecord (None when a required cell is unusable); problems go to ``ctx``."""
+    """One data row -> FrameRecord (None when a required cell is unusable); problems go to ``ctx``.
+    ``inflate``: as in :func:`validate_run`."""
     frame: int | None = None
     t_s: float | None = None
     if "frame" in cell:
@@ -406,7 +410,8 @@ def _parse_row(
             if reason is None:
                 key = (target, gname == "mask")
                 if key not in file_checked:
-                    file_checked[key] = image_file_problem(target, width, height, png_only=gname == "mask")
+                    file_checked[key] = image_file_problem(target, width, height, png_only=gname == "mask",
+                                                           inflate=inflate)
                 reason = file_checked[key]
                 if reason is not None:
                     reason = f"{gname} file {reason}"
@@ -436,11 +441,16 @@ def _parse_row(
     )
 
 
-def validate_run(path: str | Path) -> tuple[Recording | None, list[InputError]]:
+def validate_run(path: str | Path, inflate: bool = True) -> tuple[Recording | None, list[InputError]]:
     """Check a run directory against format v1 and collect **every** problem.
 
     Returns ``(recording, [])`` for a valid run and ``(None, errors)`` otherwise, errors in
     file order (recording.json first, then frames.csv row by row).
+    ``inflate`` False skips one check of PNG masks and images: their compressed data is not inflated (structure,
+    every chunk's CRC and the size are still checked; :func:`~pinpoint_fg.io.recording.png.check_png`). For
+    callers that decode every image they use through :func:`~pinpoint_fg.io.recording.png.decode_image`,
+    which runs the full check first: a file whose data is corrupt under valid CRCs is then reported, located,
+    when its frame is decoded rather than here.
     """
     root = Path(path)
     errors: list[InputError] = []
@@ -455,7 +465,7 @@ def validate_run(path: str | Path) -> tuple[Recording | None, list[InputError]]:
                                  file=root))
         return None, errors
     info = _parse_info(root / RECORDING_JSON, errors)
-    frames = _parse_frames(root, root / FRAMES_CSV, info, errors)
+    frames = _parse_frames(root, root / FRAMES_CSV, info, errors, inflate)
     if errors or info is None or frames is None:
         return None, errors
     return Recording(root=root, info=info, frames=tuple(frames)), errors

@@ -63,6 +63,9 @@ def _int_at_least(low: int, high: int | None = None):
 
 _count = _int_at_least(1)
 _seed = _int_at_least(0, MAX_SEED)
+#: Most worker processes ``--jobs`` accepts (each holds a tracker and its own interpreter: ~150 MB).
+MAX_JOBS = 64
+_jobs = _int_at_least(1, MAX_JOBS)
 
 
 def _probability(text: str) -> float:
@@ -319,7 +322,7 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", type=Path, required=True, help="new or empty directory; one result per run inside")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="a running Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)")
-    s.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster")
+    s.add_argument("--workers", type=_jobs, default=2, help="worker processes of the local cluster")
     s.add_argument("--particles", type=_count, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
     s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
@@ -405,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("runs", type=Path, nargs="+")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
-    s.add_argument("--jobs", type=int, default=2)
+    s.add_argument("--jobs", type=_jobs, default=2, help="parallel processes")
     s.add_argument("--frames", type=_count, default=None, help="only the first N frames of each run")
     s.set_defaults(func=_cmd_ablate)
 
@@ -437,7 +440,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=Path("demo-output"))
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--frames", type=_count, default=240)
-    s.add_argument("--jobs", type=int, default=2)
+    s.add_argument("--jobs", type=_jobs, default=2, help="parallel processes")
     s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser("benchmark", help="accuracy and latency of every method on every scenario")
@@ -445,7 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--frames", type=_count, default=300)
     s.add_argument("--seed", type=_seed, default=1)
-    s.add_argument("--jobs", type=int, default=1, help="parallel processes (1 keeps latencies clean)")
+    s.add_argument("--jobs", type=_jobs, default=1, help="parallel processes (1 keeps latencies clean)")
     s.add_argument("--grid-frames", type=_count, default=150, help="frames of the N x L latency grid")
     s.add_argument("--quick", action="store_true", help="150 frames per scenario, 100 in the N x L grid")
     s.add_argument("--unseen-seeds", type=_seed, nargs="+", default=[], metavar="SEED",

@@ -79,12 +79,14 @@ def test_track_bad_arguments_give_clear_errors(runs: dict[str, Path], tmp_path: 
     assert "Traceback" not in capsys.readouterr().err
 
 
-def test_evaluate_and_ablate(runs: dict[str, Path], tmp_path: Path) -> None:
+def test_evaluate_and_ablate(runs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     a, b = tmp_path / "svn", tmp_path / "map"
     assert main(["track", str(runs["normal"]), "--method", "svn", "--particles", "20", "--out", str(a)]) == 0
     assert main(["track", str(runs["normal"]), "--method", "map", "--out", str(b)]) == 0
     rep = tmp_path / "report"
+    capsys.readouterr()
     assert main(["evaluate", str(a), str(b), "--out", str(rep)]) == 0
+    assert "partial:" not in capsys.readouterr().out  # both results cover the whole run
     assert (rep / "summary.csv").exists() and (rep / "tables.md").exists()
     assert list(rep.glob("*.png"))
     abl = tmp_path / "ablation"

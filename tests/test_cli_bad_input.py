@@ -62,6 +62,9 @@ BAD_ARGS = [
     (["ablate", "RUN", "--frames", "0"], "--frames"),
     (["import-bop", "SCENE", "--model", "M.ply", "--obj-id", "1", "--seed", "-1"], "--seed"),
     (["track", "RUN", "--robust", "conic=cauchy:1e308"], "--robust"),  # was NaN poses -> ValueError traceback
+    (["demo", "--jobs", "0"], "--jobs"),                   # was accepted (and run serially)
+    (["ablate", "RUN", "--jobs", "-2"], "--jobs"),
+    (["benchmark", "--jobs", "100000"], "--jobs"),         # was accepted: one process per job
 ]
 
 
@@ -265,6 +268,10 @@ def test_tracker_breakdown_is_one_line_and_keeps_finished_frames(how: str, run: 
     line = _one_error_line(capsys.readouterr().err)
     assert "frames.csv" in line and "map failed" in line
     assert read_result(out).frame.tolist() == [0, 1, 2]
+    # evaluating the frames that were kept says the result is partial (was: figures as if complete)
+    assert main(["evaluate", str(out), "--out", str(tmp_path / "ev")]) == 0
+    printed = capsys.readouterr().out
+    assert "partial: map on" in printed and "3 of 8 frames, stopped early" in printed
 
 
 def test_a_programming_error_in_a_tracker_is_not_hidden(run: Path, tmp_path: Path,

@@ -802,8 +802,21 @@ def evaluate_results(
     if figures:
         say("figures")
         files += _figures(evals, out)
-    text = comparison_text(evals) + text_scaled
+    text = comparison_text(evals) + text_scaled + partial_text(evals, [(res, rec) for res, rec, _, _ in loaded])
     return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)
+
+
+def partial_text(evals: Sequence[ResultEvaluation], pairs: Sequence[tuple[Result, Recording]]) -> str:
+    """Lines naming every result that covers fewer frames than its recording: stopped early (``result.json``
+    ``complete`` false: interrupted, or a located error) or tracked with ``--max-frames``. Its figures are over
+    its own frames only, so a comparison with a complete result of the same run compares different frames."""
+    lines = []
+    for ev, (res, rec) in zip(evals, pairs, strict=True):
+        if len(res) < len(rec.frames):
+            why = "tracked with fewer frames" if res.complete else "stopped early (result.json: complete false)"
+            lines.append(f"partial: {ev.label} on {rec.info.name} ({res.root}): {len(res)} of {len(rec.frames)} "
+                         f"frames, {why}; its figures are over those frames only")
+    return "\n\n" + "\n".join(lines) if lines else ""
 
 
 def evaluate(results: list[Path], recording: Path | None = None, out: Path = Path("evaluation"),

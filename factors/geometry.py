@@ -156,7 +156,12 @@ class PinholeCamera:
 
 @dataclass(frozen=True)
 class NeedleModel:
-    """A circular suture needle: an arc of the needle-frame circle of radius ``radius_m``."""
+    """A circular suture needle: an arc of the needle-frame circle of radius ``radius_m``.
+
+    Physically possible only (``ValueError`` otherwise): finite numbers, positive radius and wire, an arc of
+    non-zero length shorter than a full circle, the grasp angle on the arc (from the tail towards the tip,
+    mod 2 pi; its ends included) and a wire thinner than twice the radius.
+    """
 
     radius_m: float = 0.0045
     """Radius of curvature, metres (4-0 P-3: 4.5 mm)."""
@@ -176,8 +181,21 @@ class NeedleModel:
         )
         for name in ("tail_angle_rad", "tip_angle_rad", "grasp_angle_rad"):
             object.__setattr__(self, name, _finite_float(name, getattr(self, name)))
-        if abs(self.tip_angle_rad - self.tail_angle_rad) < 1e-9:
+        arc = abs(self.tip_angle_rad - self.tail_angle_rad)
+        if arc < 1e-9:
             raise ValueError("tip_angle_rad and tail_angle_rad must differ (the arc has zero length)")
+        if arc >= 2.0 * math.pi:
+            raise ValueError(f"the arc from tail_angle_rad to tip_angle_rad spans {arc:.6g} rad, a full circle or more "
+                             "(the wire would overlap itself)")
+        # the grasper holds the wire: the grasp angle lies on the arc, taken from the tail towards the tip mod 2 pi
+        towards_tip = math.copysign(1.0, self.tip_angle_rad - self.tail_angle_rad)
+        along = (towards_tip * (self.grasp_angle_rad - self.tail_angle_rad)) % (2.0 * math.pi)
+        if arc + 1e-9 < along < 2.0 * math.pi - 1e-9:  # (a hair before the tail is the tail, round-off)
+            raise ValueError(f"grasp_angle_rad {self.grasp_angle_rad:.6g} is not on the arc from tail_angle_rad "
+                             f"{self.tail_angle_rad:.6g} to tip_angle_rad {self.tip_angle_rad:.6g} (mod 2 pi)")
+        if self.wire_diameter_m >= 2.0 * self.radius_m:
+            raise ValueError(f"wire_diameter_m {self.wire_diameter_m:.6g} is at least twice radius_m "
+                             f"{self.radius_m:.6g} (no wire bends that tightly)")
 
     def point(self, theta: float | np.ndarray) -> np.ndarray:
         """Needle-frame point(s) at arc angle ``theta``: ``r (cos, sin, 0)``, shape ``(..., 3)``."""

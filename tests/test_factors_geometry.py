@@ -42,6 +42,29 @@ def test_needle_points_and_tangents() -> None:
         NeedleModel(tip_angle_rad=0.0)
 
 
+@pytest.mark.parametrize(("fields", "problem"), [
+    ({"tip_angle_rad": 7.0}, "full circle"),                                 # the wire overlaps itself
+    ({"tail_angle_rad": -3.2, "tip_angle_rad": 3.1}, "full circle"),
+    ({"grasp_angle_rad": 3.0}, "not on the arc"),                             # past the tip
+    ({"grasp_angle_rad": -0.5}, "not on the arc"),                            # behind the tail
+    ({"tail_angle_rad": 0.0, "tip_angle_rad": -2.0, "grasp_angle_rad": 1.0}, "not on the arc"),
+    ({"wire_diameter_m": 0.009}, "twice radius_m"),
+])
+def test_impossible_needles_are_refused(fields: dict, problem: str) -> None:
+    with pytest.raises(ValueError, match=problem):
+        NeedleModel(**fields)
+
+
+@pytest.mark.parametrize("fields", [
+    {"grasp_angle_rad": 0.0}, {"grasp_angle_rad": 3 * np.pi / 4},             # the arc's ends
+    {"grasp_angle_rad": np.pi / 4 + 2 * np.pi}, {"grasp_angle_rad": -1e-12},  # mod 2 pi; round-off at the tail
+    {"tail_angle_rad": 0.0, "tip_angle_rad": -2.0, "grasp_angle_rad": -1.0},  # an arc the other way round
+    {"tail_angle_rad": 5.5, "tip_angle_rad": 7.0, "grasp_angle_rad": 0.1},    # crossing 2 pi
+])
+def test_possible_needles_are_accepted(fields: dict) -> None:
+    NeedleModel(**fields)
+
+
 def test_pose_quaternion_round_trip() -> None:
     rng = np.random.default_rng(1)
     q = rng.normal(size=(50, 4))

@@ -259,6 +259,15 @@ def test_cli_import_then_validate(bop: dict, tmp_path: Path, capsys: pytest.Capt
     assert rec.info.frame_rate_hz == 10.0 and rec.frames[3].t_s == pytest.approx(0.3)
 
 
+def test_cli_refuses_a_grasp_off_the_needle(bop: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "off"
+    assert main(["import-bop", str(bop["scene"]), "--model", str(bop["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out), "--grasp-angle-rad", "5.0", "--no-images"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "not on the arc" in err and "--grasp-angle-rad 5.0" in err
+    assert not out.exists() or not any(out.iterdir())
+
+
 def test_gray_jpeg_images_and_no_camera_extras(bop: dict, tmp_path: Path) -> None:
     scene = tmp_path / "scene"
     shutil.copytree(bop["scene"], scene)

@@ -413,6 +413,9 @@ def test_missing_json_key(run, key: str, edit) -> None:
         ("camera", lambda d: d.update(camera=[1, 2]), "object"),
         ("needle.tip_angle_rad", lambda d: d["needle"].update(tip_angle_rad="3/4 pi"), "number"),
         ("needle", lambda d: d["needle"].update(tip_angle_rad=0.0), "differ"),
+        ("needle", lambda d: d["needle"].update(grasp_angle_rad=-1.0), "not on the arc"),  # were accepted
+        ("needle", lambda d: d["needle"].update(tip_angle_rad=6.5), "full circle"),
+        ("needle", lambda d: d["needle"].update(wire_diameter_m=0.02), "twice radius_m"),
         ("format", lambda d: d.update(format="something-else"), "pinpoint-recording"),
         ("version", lambda d: d.update(version=2), "unsupported"),
         ("name", lambda d: d.update(name=""), "non-empty"),

@@ -323,7 +323,8 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     try:
         needle = fit.needle_model(cfg.grasp_angle_rad)
     except ValueError as exc:
-        raise InputError(f"grasp angle (--grasp-angle-rad): {exc}") from None
+        raise InputError(f"needle fitted to the mesh with --grasp-angle-rad {cfg.grasp_angle_rad}: {exc}",
+                         file=model_path) from None
     cams = _camera_entries(scene / SCENE_CAMERA)
     gts = _gt_entries(scene / SCENE_GT, cfg.obj_id, cfg.instance)
     orphans = sorted(set(gts) - set(cams))

@@ -261,7 +261,15 @@ class NoiseConfig:
         }
 
     def save(self, path: str | Path) -> None:
-        """Write the JSON file."""
+        """Write the JSON file; :class:`InputError` (nothing written) for a variance :meth:`load` would refuse
+        (e.g. ``calibrate`` on noise-free data)."""
+        for k, noise in self.residuals.items():
+            w = np.linalg.eigvalsh(noise.cov)
+            lo, hi = NOISE_VARIANCE_FLOOR.get(k, NOISE_VARIANCE_RANGE[0]), NOISE_VARIANCE_RANGE[1]
+            if w[0] < lo or w[-1] > hi:
+                raise InputError(f"residual {k!r} has a variance of {w[0] if w[0] < lo else w[-1]:.3g}, outside "
+                                 f"{lo:g} .. {hi:g} in {RESIDUAL_UNITS.get(k, 'its unit')} squared, which a noise "
+                                 "file may not hold", file=Path(path))
         Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
 
     @classmethod
@@ -298,12 +306,12 @@ class NoiseConfig:
                 raise InputError(f"{where}: {exc}", file=path) from exc
             if parsed[k].dim != d:
                 raise InputError(f"{where}: dimension {parsed[k].dim}, expected {d}", file=path)
-            lo, hi = NOISE_VARIANCE_RANGE
+            lo, hi = NOISE_VARIANCE_FLOOR[k], NOISE_VARIANCE_RANGE[1]
             w = np.linalg.eigvalsh(parsed[k].cov)
             if w[0] < lo or w[-1] > hi:
                 raise InputError(f"{where}: 'cov' has a variance of {w[0] if w[0] < lo else w[-1]:.3g}, accepted "
-                                 f"{lo:g} .. {hi:g} (a standard deviation of 1e-7 to 1e6 in the residual's unit)",
-                                 file=path)
+                                 f"{lo:g} .. {hi:g} (a standard deviation of {np.sqrt(lo):g} to 1e6 "
+                                 f"{RESIDUAL_UNITS[k]})", file=path)
         return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path))
 
     def process_variance_whitened(self, scale: np.ndarray) -> float:
@@ -317,6 +325,17 @@ class NoiseConfig:
 #: overflowed SVN's log posterior (variance 1e-16: ``log_posterior contains NaN or +inf``); above it, or a
 #: ``|mean|`` beyond :data:`MAX_NOISE_ABS_MEAN`, the file is a unit mistake (``1e308`` gave NaN poses).
 NOISE_VARIANCE_RANGE = (1e-14, 1e12)
+#: Unit of each residual type's standard deviation (error messages).
+RESIDUAL_UNITS: dict[str, str] = {"tip": "px", "tail": "px", "conic": "px", "grasp_position": "m",
+                                  "grasp_perpendicular": "(unitless)", "motion": "rad / m"}
+#: Smallest accepted variance per residual type, in its unit squared: a standard deviation of 0.01 px for the
+#: pixel residuals, 10 µm for the grasp position, 1e-4 for perpendicularity (no detector, kinematic chain or
+#: grasp is that exact), :data:`NOISE_VARIANCE_RANGE`'s 1e-14 for the motion. Below these, GTSAM's MAP
+#: baseline met an indeterminate linear system on the simulator's normal run (tip at a variance of 1e-7 px^2
+#: while 1e-6 tracked; grasp position at 1e-14 m^2 while 1e-12 tracked; perpendicularity at 1e-14 while 1e-10
+#: tracked; motion tracked at 1e-14), so each floor lies 100x above the smallest variance seen to track.
+NOISE_VARIANCE_FLOOR: dict[str, float] = {"tip": 1e-4, "tail": 1e-4, "conic": 1e-4, "grasp_position": 1e-10,
+                                          "grasp_perpendicular": 1e-8, "motion": NOISE_VARIANCE_RANGE[0]}
 #: Largest accepted ``|mean|`` (bias) of a noise file's residual, in the residual's unit.
 MAX_NOISE_ABS_MEAN = 1e6
 #: Largest accepted ``|cov - cov^T|`` relative to ``max |cov|`` (rounding; a larger asymmetry is a typo that

@@ -1,0 +1,66 @@
+"""pinpoint_fg.noise: noise files hold only variances the trackers can use (floors per residual type)."""
+
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pinpoint_fg.errors import InputError
+from pinpoint_fg.noise import NOISE_VARIANCE_FLOOR, RESIDUAL_DIMS, NoiseConfig, ResidualNoise
+
+
+def _doc_with(name: str, variance: float) -> dict:
+    doc = copy.deepcopy(NoiseConfig().to_json())
+    doc["residuals"][name]["cov"] = (variance * np.eye(RESIDUAL_DIMS[name])).tolist()
+    return doc
+
+
+@pytest.mark.parametrize("name", sorted(NOISE_VARIANCE_FLOOR))
+def test_each_residual_type_has_its_floor(name: str, tmp_path: Path) -> None:
+    floor = NOISE_VARIANCE_FLOOR[name]
+    at, below = tmp_path / "at.json", tmp_path / "below.json"
+    at.write_text(json.dumps(_doc_with(name, floor)))
+    below.write_text(json.dumps(_doc_with(name, 0.5 * floor)))
+    assert NoiseConfig.load(at).residuals[name].cov[0, 0] == floor
+    with pytest.raises(InputError, match=f"residuals.{name}"):
+        NoiseConfig.load(below)
+
+
+def test_the_defaults_lie_above_the_floors() -> None:
+    for name, noise in NoiseConfig().residuals.items():
+        assert np.linalg.eigvalsh(noise.cov)[0] >= NOISE_VARIANCE_FLOOR[name], name
+
+
+def test_save_refuses_what_load_would_refuse_and_writes_nothing(tmp_path: Path) -> None:
+    cfg = NoiseConfig()
+    residuals = dict(cfg.residuals)
+    residuals["tip"] = ResidualNoise(mean=np.zeros(2), cov=1e-6 * np.eye(2), count=10)  # e.g. noise-free data
+    path = tmp_path / "noise.json"
+    with pytest.raises(InputError, match="'tip'"):
+        NoiseConfig(residuals=residuals, robust=cfg.robust).save(path)
+    assert not path.exists()
+
+
+@pytest.mark.parametrize(("name", "variance"),
+                         [("tip", 1e-8), ("grasp_position", 1e-14), ("grasp_perpendicular", 1e-14)])
+def test_a_variance_that_broke_the_map_baseline_is_one_line_before_tracking(name: str, variance: float,
+                                                                             tmp_path: Path) -> None:
+    """These made GTSAM's MAP baseline raise an indeterminate linear system mid-run (simulator, normal scenario);
+    now the noise file is refused, with exit code 2, before anything is written."""
+    run, noise, out = tmp_path / "run", tmp_path / "noise.json", tmp_path / "out"
+    noise.write_text(json.dumps(_doc_with(name, variance)))
+    cli = [sys.executable, "-m", "pinpoint_fg.cli"]
+    assert subprocess.run([*cli, "simulate", "--scenario", "normal", "--frames", "3", "--seed", "1", "--out",
+                           str(run)], capture_output=True).returncode == 0
+    done = subprocess.run([*cli, "track", str(run), "--method", "map", "--noise", str(noise), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert done.returncode == 2
+    lines = [s for s in done.stderr.splitlines() if s.strip()]
+    assert len(lines) == 1 and str(noise) in lines[0] and f"residuals.{name}" in lines[0], done.stderr
+    assert not out.exists() or not any(out.iterdir())

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import multiprocessing
 from collections.abc import Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.report import ABLATION_VARIANTS, evaluate_results
+from pinpoint_fg.experiments.jobs import interruptible_pool
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 
@@ -110,8 +111,8 @@ def run_jobs(
                 bar.update(1)
         else:
             ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=int(workers), mp_context=ctx) as pool:
-                futures: dict[Future, AblationJob] = {pool.submit(_run_job, job): job for job in jobs}
+            with interruptible_pool(int(workers), mp_context=ctx) as submit:  # Ctrl-C stops every job
+                futures: dict[Future, AblationJob] = {submit(_run_job, job): job for job in jobs}
                 for fut in as_completed(futures):
                     job = futures[fut]
                     try:

@@ -223,9 +223,10 @@ def read_result(out_dir: str | Path) -> Result:
     bimodal = np.zeros(F, dtype=bool)
     iters = np.zeros(F, dtype=np.int64)
     for r, cells in enumerate(rows, start=1):
-        q95_t[r - 1] = _num(est_path, r, "q95_trans_m", cells[idx["q95_trans_m"]], allow_nan=True)
-        q95_r[r - 1] = _num(est_path, r, "q95_rot_rad", cells[idx["q95_rot_rad"]], allow_nan=True)
-        lat[r - 1] = _num(est_path, r, "latency_ms", cells[idx["latency_ms"]], allow_nan=True)
+        for c, arr in (("q95_trans_m", q95_t), ("q95_rot_rad", q95_r), ("latency_ms", lat)):
+            arr[r - 1] = _num(est_path, r, c, cells[idx[c]], allow_nan=True)
+            if arr[r - 1] < 0:  # a radius and a duration: the writer never writes a negative one
+                raise InputError(f"must not be negative, got {shown(cells[idx[c]])}", file=est_path, row=r, column=c)
         b = cells[idx["bimodal"]]
         if b not in ("0", "1"):
             raise InputError(f"must be 0 or 1, got {shown(b)}", file=est_path, row=r, column="bimodal")

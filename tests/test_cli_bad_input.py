@@ -342,3 +342,117 @@ def test_writer_refuses_poses_the_reader_would_refuse(run: Path, tmp_path: Path)
     with pytest.raises(InputError, match="gt_x_m"):
         replace_ground_truth(copy_run, {0: far})
     assert not validate_run(copy_run)[1]
+
+
+# --- second audit: results read back, a reference of another recording, Ctrl-C in worker pools ---------------
+
+@pytest.fixture(scope="module")
+def map_result(run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("audit2") / "map"
+    assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 0
+    return out
+
+
+def _edit_estimate(result: Path, dest: Path, row: int, column: str, cell: str) -> Path:
+    shutil.copytree(result, dest)
+    lines = (dest / "estimates.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index(column)] = cell
+    lines[row] = ",".join(cells)
+    (dest / "estimates.csv").write_text("\n".join(lines) + "\n")
+    return dest
+
+
+@pytest.mark.parametrize("column", ["q95_trans_m", "q95_rot_rad", "latency_ms"])
+def test_hand_edited_negative_q95_or_latency_is_located(column: str, map_result: Path, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: evaluate said only "column 'q95_trans': q95_trans must be non-negative" (no file, no row),
+    calibrate-spread "method 'map': a result reports a negative q95", and a negative latency was averaged in."""
+    bad = _edit_estimate(map_result, tmp_path / "r", 3, column, "-0.5")
+    with pytest.raises(InputError) as exc:
+        read_result(bad)
+    assert (exc.value.file, exc.value.row, exc.value.column) == (str(bad / "estimates.csv"), 3, column)
+    assert main(["evaluate", str(bad), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "estimates.csv" in line and "row 3" in line and column in line
+    assert not (tmp_path / "ev" / "summary.csv").exists()
+    if column != "latency_ms":
+        assert main(["calibrate-spread", str(bad), "--out", str(tmp_path / "s.json")]) == 2
+        assert "row 3" in _one_error_line(capsys.readouterr().err)
+        assert not (tmp_path / "s.json").exists()
+
+
+def test_result_writer_refuses_a_negative_q95(map_result: Path, tmp_path: Path) -> None:
+    from pinpoint_fg.estimate import Estimate
+    from pinpoint_fg.io.result.writer import ResultWriter
+
+    res = read_result(map_result)
+
+    def estimate(k: int, q95_rot_rad: float) -> Estimate:
+        return Estimate(frame=int(res.frame[k]), t_s=float(res.t_s[k]), cam_T_needle=res.cam_T_needle[k],
+                        q95_trans_m=1e-3, q95_rot_rad=q95_rot_rad, iterations=1, latency_ms=1.0,
+                        particles=res.cam_T_needle[k][None], log_posterior=np.zeros(1))
+
+    with ResultWriter(tmp_path / "w", method="map", settings={}, recording_name="x") as w:
+        w.write(estimate(0, 0.01))
+        with pytest.raises(ValueError, match="q95_rot_rad must not be negative"):  # was written, then unreadable
+            w.write(estimate(1, -1e-3))
+    assert read_result(tmp_path / "w").frame.tolist() == [0]
+
+
+def test_reference_of_another_recording_is_refused_before_any_work(map_result: Path, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: exit 0 and "vs reference: – / – (0 / 0 frames)": a reference nobody was compared with."""
+    other_run = tmp_path / "other"
+    assert main(["simulate", "--scenario", "rotation", "--frames", "4", "--seed", "2", "--out", str(other_run)]) == 0
+    other = tmp_path / "other-result"
+    assert main(["track", str(other_run), "--method", "map", "--out", str(other)]) == 0
+    capsys.readouterr()
+    ev = tmp_path / "ev"
+    assert main(["evaluate", str(map_result), "--reference", str(other), "--out", str(ev)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(other / "result.json") in line and "recording_name" in line and "rotation-02" in line
+    assert not any(ev.iterdir())
+    # a reference of one of the evaluated recordings is still taken
+    both = [str(map_result), str(other)]
+    assert main(["evaluate", *both, "--reference", str(other), "--out", str(tmp_path / "ok")]) == 0
+    assert "(0 / 4 frames)" in capsys.readouterr().out
+
+
+def _interrupt_or_mark(job) -> tuple[str, float]:
+    """A stand-in for a tracking job: the first one is hit by Ctrl-C (the terminal sends SIGINT to the caller and
+    to its worker); every other one takes a moment and leaves a marker file."""
+    import os
+    import signal
+    import time
+
+    if job.method == "interrupt":
+        os.kill(os.getppid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(30)
+    time.sleep(0.3)
+    Path(job.out).touch()
+    return job.out, 0.3
+
+
+def test_ctrl_c_stops_the_pending_jobs_of_a_worker_pool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: an interrupted ``demo`` (or benchmark, ablate) kept running every pending job to its end
+    (ProcessPoolExecutor's shutdown waits for them; each worker took the next job after its KeyboardInterrupt):
+    42 s after Ctrl-C on a 150-frame demo, instead of 0.6 s."""
+    import signal
+
+    from pinpoint_fg.experiments import jobs as jobs_module
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # the test process must see Ctrl-C
+    try:
+        monkeypatch.setattr(jobs_module, "_track", _interrupt_or_mark)
+        job_list = [jobs_module.TrackJob("run", "interrupt", str(tmp_path / "interrupt"))]
+        job_list += [jobs_module.TrackJob("run", "mark", str(tmp_path / f"m{i}")) for i in range(10)]
+        with pytest.raises(KeyboardInterrupt):
+            jobs_module.run_tracking(job_list, workers=2)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    ran = sorted(p.name for p in tmp_path.glob("m*"))
+    # at most the job the other worker was running and the ones already handed to it; before: all 10
+    assert len(ran) <= 3, ran

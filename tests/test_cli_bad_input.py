@@ -456,3 +456,40 @@ def test_ctrl_c_stops_the_pending_jobs_of_a_worker_pool(tmp_path: Path, monkeypa
     ran = sorted(p.name for p in tmp_path.glob("m*"))
     # at most the job the other worker was running and the ones already handed to it; before: all 10
     assert len(ran) <= 3, ran
+
+
+def _edit_settings(result: Path, dest: Path, **settings: object) -> Path:
+    shutil.copytree(result, dest)
+    doc = json.loads((dest / "result.json").read_text())
+    doc["settings"].update(settings)
+    (dest / "result.json").write_text(json.dumps(doc))
+    return dest
+
+
+@pytest.mark.parametrize(("settings", "says"), [
+    ({"disabled": 5}, "must be a list"),                          # was TypeError: 'int' object is not iterable
+    ({"noise_file": 5}, "must be a path or null"),                # was "RESULT/5: not found"
+    ({"noise_file": "/nonexistent/noise.json"}, "is not found"),  # was the noise file alone, not who needs it
+])
+def test_hand_edited_result_settings_are_located(settings: dict, says: str, map_result: Path, tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    bad = _edit_settings(map_result, tmp_path / "r", **settings)
+    assert main(["evaluate", str(bad), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bad / "result.json") in line and "settings." + next(iter(settings)) in line and says in line
+
+
+def test_noise_file_given_relative_is_found_from_another_directory(run: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """track recorded ``--noise`` as given: evaluated from another directory, a relative name found that
+    directory's noise.json (another file: silently other numbers) or none at all."""
+    (tmp_path / "a").mkdir()
+    NoiseConfig().save(tmp_path / "a" / "noise.json")
+    monkeypatch.chdir(tmp_path / "a")
+    assert main(["track", str(run), "--method", "map", "--noise", "noise.json", "--out", str(tmp_path / "r")]) == 0
+    recorded = json.loads((tmp_path / "r" / "result.json").read_text())["settings"]["noise_file"]
+    assert recorded == str(tmp_path / "a" / "noise.json")
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "noise.json").write_text("{}")  # another directory's noise.json, not the one tracked with
+    monkeypatch.chdir(tmp_path / "b")
+    assert main(["evaluate", str(tmp_path / "r"), "--out", str(tmp_path / "ev")]) == 0  # was 2, naming b/noise.json

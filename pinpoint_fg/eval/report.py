@@ -62,7 +62,7 @@ from pinpoint_fg.eval.modes import (
 )
 from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.recording.schema import Recording, json_shown
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
@@ -144,6 +144,9 @@ def _disabled_of(res: Result) -> tuple[str, ...]:
     d = _settings_of(res).get("disabled") or ()
     if isinstance(d, str):
         d = [x for x in d.split(",") if x]
+    if not isinstance(d, list | tuple):  # a hand-edited number was a TypeError traceback
+        raise InputError(f'key "settings.disabled": must be a list of switch names, got {json_shown(d)}',
+                         file=res.root / "result.json")
     try:
         return normalized_disabled(tuple(str(x) for x in d))
     except ValueError as exc:
@@ -154,9 +157,15 @@ def _noise_of(res: Result) -> tuple[NoiseConfig, str | None]:
     path = _settings_of(res).get("noise_file")
     if not path:
         return NoiseConfig(), None
-    p = Path(str(path))
+    where = res.root / "result.json"
+    if not isinstance(path, str):
+        raise InputError(f'key "settings.noise_file": must be a path or null, got {json_shown(path)}', file=where)
+    p = Path(path)
     if not p.is_absolute() and not p.exists():
         p = res.root / p
+    if not p.is_file():  # moved or deleted since tracking: say which result needs it
+        raise InputError(f'key "settings.noise_file": the noise file it was tracked with, {p}, is not found',
+                         file=where)
     return NoiseConfig.load(p), str(p.resolve())
 
 

@@ -3,9 +3,8 @@
 ``batch_track(runs, method, OUT)`` runs :func:`pinpoint_fg.track.track_recording` once per run,
 each as one Dask task, and writes the result of run ``RUN`` to ``OUT/<RUN's directory name>``:
 the same files a single ``pinpoint-fg track RUN --method M --out OUT/<name>`` writes, identical
-except the ``latency_ms`` column (timing) and, in ``result.json``, a noise file path made
-absolute. This is how many runs scale past one machine: point ``scheduler`` at a running
-``dask scheduler`` whose workers share the file system.
+except the ``latency_ms`` column (timing). This is how many runs scale past one machine: point
+``scheduler`` at a running ``dask scheduler`` whose workers share the file system.
 
 Decisions:
 

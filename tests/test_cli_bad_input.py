@@ -493,3 +493,17 @@ def test_noise_file_given_relative_is_found_from_another_directory(run: Path, tm
     (tmp_path / "b" / "noise.json").write_text("{}")  # another directory's noise.json, not the one tracked with
     monkeypatch.chdir(tmp_path / "b")
     assert main(["evaluate", str(tmp_path / "r"), "--out", str(tmp_path / "ev")]) == 0  # was 2, naming b/noise.json
+
+
+@pytest.mark.parametrize("command", ["calibrate", "ablate"])
+def test_a_run_given_twice_is_refused_not_pooled_twice(command: str, run: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: calibrate counted the run twice (8 frames -> 16 samples: a motion covariance replaced its default,
+    exit 0), ablate tracked it twice and weighed it double in Table III. ``batch`` already refused it."""
+    link = tmp_path / "same-run"
+    link.symlink_to(run)
+    out = tmp_path / ("noise.json" if command == "calibrate" else "ablation")
+    assert main([command, str(run), str(link), "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(link) in line and "given twice" in line and str(run) in line
+    assert not out.exists()

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from factors import residuals as res
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, refuse_repeated
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.noise import RESIDUAL_DIMS, NoiseConfig, ResidualNoise
@@ -118,11 +118,12 @@ def noise_from_residuals(samples: dict[str, np.ndarray]) -> NoiseConfig:
 def calibrate_runs(runs: list[Path]) -> NoiseConfig:
     """Calibrated noise of every residual type from the ground truth of ``runs`` (module docstring).
 
-    Raises :class:`InputError` naming the run when a run cannot be read or has no ground truth.
+    Raises :class:`InputError` naming the run when a run cannot be read or has no ground truth, or is given twice.
     """
     runs = [Path(r) for r in runs]
     if not runs:
         raise InputError("calibration needs at least one recorded run")
+    refuse_repeated(runs, "run")  # was counted twice: other statistics, a type's default replaced (count)
     pooled: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
     for run in runs:
         samples = residuals_at_truth(read_recording(run))

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, refuse_repeated
 from pinpoint_fg.eval.report import ABLATION_VARIANTS, evaluate_results
 from pinpoint_fg.experiments.jobs import interruptible_pool
 from pinpoint_fg.io.outdir import prepare_output_dir
@@ -70,10 +70,11 @@ def ablation_jobs(
     """Every (run, variant) job with its result directory ``out/<run name>/<variant>``.
 
     The run name is the recording's name; runs that share a name get ``-2``, ``-3``, ... appended.
-    Raises :class:`InputError` when a run cannot be read.
+    Raises :class:`InputError` when a run cannot be read or is given twice.
     """
     if not runs:
         raise InputError("ablate needs at least one recorded run")
+    refuse_repeated(runs, "run")  # was tracked twice and weighed double in Table III
     if frames is not None and int(frames) < 1:
         raise InputError(f"--frames must be >= 1, got {frames}")
     out = Path(out)

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, refuse_repeated
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.noise import NoiseConfig
@@ -111,13 +111,8 @@ def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: in
         raise TypeError(f"unknown track options {unknown}; known: {', '.join(TRACK_OPTIONS)}")
     if int(workers) < 1:
         raise InputError(f"must be >= 1, got {workers}", column="--workers")
+    refuse_repeated(runs, "run")
     paths = [Path(r).absolute() for r in runs]
-    seen: dict[Path, Path] = {}
-    for given, p in zip(runs, paths, strict=True):
-        key = p.resolve()
-        if key in seen:
-            raise InputError(f"run given twice (also as {seen[key]})", file=given)
-        seen[key] = Path(given)
     options = dict(options)
     if options.get("noise_file") is not None:
         noise = Path(options["noise_file"]).absolute()

@@ -507,3 +507,24 @@ def test_a_run_given_twice_is_refused_not_pooled_twice(command: str, run: Path, 
     line = _one_error_line(capsys.readouterr().err)
     assert str(link) in line and "given twice" in line and str(run) in line
     assert not out.exists()
+
+
+def test_calibrate_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: exit 0, and the keypoint residuals of the needle's mirror image pooled into the noise file
+    (tip std 0.6 -> 42 px from one such frame of eight)."""
+    bad = tmp_path / "run"
+    shutil.copytree(run, bad)
+    lines = (bad / "frames.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[3].split(",")
+    cells[header.index("gt_z_m")] = str(-float(cells[header.index("gt_z_m")]))
+    lines[3] = ",".join(cells)
+    (bad / "frames.csv").write_text("\n".join(lines) + "\n")
+    assert not validate_run(bad)[1]  # a valid recording: its content is what is wrong
+    out = tmp_path / "noise.json"
+    assert main(["calibrate", str(bad), "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "frames.csv" in line and "row 3" in line and "gt_z_m" in line and "not in front" in line
+    assert not out.exists()
+    assert main(["calibrate", str(run), "--out", str(out)]) == 0  # the run as simulated still calibrates

@@ -528,3 +528,31 @@ def test_calibrate_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: P
     assert "frames.csv" in line and "row 3" in line and "gt_z_m" in line and "not in front" in line
     assert not out.exists()
     assert main(["calibrate", str(run), "--out", str(out)]) == 0  # the run as simulated still calibrates
+
+
+def test_an_idle_pool_worker_remembers_ctrl_c_without_a_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker waiting for its next job printed a KeyboardInterrupt traceback of its queue; it now only remembers
+    the interrupt and refuses the next job."""
+    from pinpoint_fg.experiments import jobs as jobs_module
+
+    monkeypatch.setattr(jobs_module, "_interrupted", False)
+    jobs_module._on_sigint(2, None)  # idle: no exception
+    assert jobs_module._interrupted
+    with pytest.raises(KeyboardInterrupt):
+        jobs_module._guarded(print, "never printed")
+    monkeypatch.setattr(jobs_module, "_interrupted", False)
+    assert jobs_module._guarded(int, "7") == 7
+
+
+def test_track_workers_leave_ctrl_c_to_the_tracking_process() -> None:
+    """Ctrl-C during ``track`` printed the verdict/observer workers' KeyboardInterrupt tracebacks beside the
+    command's one line; the workers now ignore SIGINT (the tracking process stops them)."""
+    import signal
+    import subprocess
+    import sys
+
+    code = ("import os, signal, time\nfrom pinpoint_fg.offload import _worker_init\n_worker_init(os.getppid())\n"
+            "os.kill(os.getpid(), signal.SIGINT)\ntime.sleep(0.2)\nprint('alive')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert done.returncode == 0 and done.stdout.strip() == "alive" and "Traceback" not in done.stderr

@@ -38,12 +38,15 @@ class TrackJob:
 
 #: True in a pool worker once it received SIGINT (:func:`_worker_init`): it starts no further job.
 _interrupted = False
+#: True in a pool worker while it runs a job.
+_running = False
 
 
 def _on_sigint(signum: int, frame: Any) -> None:
     global _interrupted
     _interrupted = True
-    raise KeyboardInterrupt
+    if _running:  # an idle worker only remembers it (raised in its queue wait, it printed a traceback)
+        raise KeyboardInterrupt
 
 
 def _worker_init() -> None:
@@ -54,9 +57,14 @@ def _worker_init() -> None:
 
 
 def _guarded(fn: Callable[..., Any], *args: Any) -> Any:
-    if _interrupted:
-        raise KeyboardInterrupt
-    return fn(*args)
+    global _running
+    _running = True
+    try:
+        if _interrupted:  # checked after _running is set: an interrupt in between is raised by the handler
+            raise KeyboardInterrupt
+        return fn(*args)
+    finally:
+        _running = False
 
 
 @contextmanager

@@ -556,3 +556,17 @@ def test_track_workers_leave_ctrl_c_to_the_tracking_process() -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert done.returncode == 0 and done.stdout.strip() == "alive" and "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize(("command", "says"), [("evaluate", "--recording"), ("calibrate-spread", "correct")])
+def test_a_result_whose_recording_moved_names_the_result(command: str, says: str, map_result: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: "MOVED: not a directory (a run is ...)", not saying which result needs it or what to do."""
+    moved = tmp_path / "r"
+    shutil.copytree(map_result, moved)
+    doc = json.loads((moved / "result.json").read_text())
+    doc["recording_path"] = str(tmp_path / "moved-away")
+    (moved / "result.json").write_text(json.dumps(doc))
+    assert main([command, str(moved), "--out", str(tmp_path / "out")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(moved / "result.json") in line and "recording_path" in line and "moved-away" in line and says in line

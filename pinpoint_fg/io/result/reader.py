@@ -377,8 +377,8 @@ def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> R
     """The recording ``result.json`` names (``recording_path``; relative: to the result), read once per path.
 
     ``cache`` maps resolved paths to recordings already read. The recording's name must be the result's
-    ``recording_name``. :class:`InputError` naming ``result.json`` otherwise, or when the path is empty (with
-    ``hint``, e.g. how to pass the recording instead, appended to the message).
+    ``recording_name``. :class:`InputError` naming ``result.json`` otherwise, or when the path is empty or names
+    no directory (with ``hint``, e.g. how to pass the recording instead, appended to the message).
     """
     path = res.info.get("recording_path")
     if not path:
@@ -388,6 +388,9 @@ def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> R
     if not p.is_absolute() and not p.exists():
         p = res.root / p
     key = p.resolve()
+    if key not in cache and not p.is_dir():  # moved or deleted since tracking: say which result needs it
+        raise InputError(f"the recording it was tracked on, {p}, is not found (moved or deleted?)"
+                         f"{': ' + hint if hint else ''}", file=res.root / "result.json", column="recording_path")
     if key not in cache:
         cache[key] = read_recording(p)
     rec = cache[key]

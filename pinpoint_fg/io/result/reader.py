@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import re
 from collections.abc import Iterable
 from pathlib import Path
@@ -181,11 +182,12 @@ def expand_result_dirs(paths: Iterable[str | Path]) -> list[Path]:
             out.extend(subs or [p])
         else:
             out.append(p)
-    seen: set[Path] = set()
+    seen: set[str] = set()
     unique = []
     for p in out:
-        if p.resolve() not in seen:
-            seen.add(p.resolve())
+        key = os.path.realpath(p)  # not Path.resolve: a symlink loop was its RuntimeError traceback
+        if key not in seen:
+            seen.add(key)
             unique.append(p)
     return unique
 
@@ -387,7 +389,7 @@ def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> R
     p = Path(str(path))
     if not p.is_absolute() and not p.exists():
         p = res.root / p
-    key = p.resolve()
+    key = Path(os.path.realpath(p))
     if key not in cache and not p.is_dir():  # moved or deleted since tracking: say which result needs it
         raise InputError(f"the recording it was tracked on, {p}, is not found (moved or deleted?)"
                          f"{': ' + hint if hint else ''}", file=res.root / "result.json", column="recording_path")

@@ -583,3 +583,23 @@ def test_a_symlink_loop_given_as_input_is_one_line(command: str, tmp_path: Path,
     assert main([command, str(tmp_path / "a"), "--out", str(out)]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert str(tmp_path / "a") in line and "not a directory" in line
+
+
+@pytest.mark.parametrize("target", ["loop", "missing"])
+def test_out_as_a_symlink_that_cannot_be_followed_is_refused_before_any_work(target: str, run: Path, tmp_path: Path,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, with --overwrite: a loop was an OSError traceback when the noise file was saved (after the work);
+    a link to a missing file wrote the noise file there, outside --out's directory."""
+    out = tmp_path / "noise.json"
+    if target == "loop":
+        (tmp_path / "other").symlink_to(out)
+        out.symlink_to(tmp_path / "other")
+    else:
+        out.symlink_to(tmp_path / "elsewhere" / "noise.json")
+        (tmp_path / "elsewhere").mkdir()
+    assert main(["calibrate", str(run), "--out", str(out), "--overwrite"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(out) in line and "symbolic link that cannot be followed" in line
+    assert not (tmp_path / "elsewhere" / "noise.json").exists()
+    assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 2  # a directory output, too
+    assert "symbolic link" in _one_error_line(capsys.readouterr().err)

@@ -603,3 +603,35 @@ def test_out_as_a_symlink_that_cannot_be_followed_is_refused_before_any_work(tar
     assert not (tmp_path / "elsewhere" / "noise.json").exists()
     assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 2  # a directory output, too
     assert "symbolic link" in _one_error_line(capsys.readouterr().err)
+
+
+def _renamed(run: Path, dest: Path, name: str) -> Path:
+    shutil.copytree(run, dest)
+    doc = json.loads((dest / "recording.json").read_text())
+    doc["name"] = name
+    (dest / "recording.json").write_text(json.dumps(doc))
+    return dest
+
+
+def test_ablate_keeps_every_result_inside_out_whatever_the_recording_names(run: Path, tmp_path: Path) -> None:
+    """The directory came from recording.json's free-text name, and ablate tracks with overwrite: ``..`` and
+    ``/abs/path`` put (and overwrote) results outside --out; runs named x, x, x-2 shared a directory."""
+    from pinpoint_fg.experiments.ablate import ablation_jobs
+
+    names = ["..", str(tmp_path / "elsewhere"), "x", "x", "x-2", "a/b"]
+    runs = [_renamed(run, tmp_path / f"run{i}", n) for i, n in enumerate(names)]
+    out = tmp_path / "ablation"
+    jobs = ablation_jobs(runs, out)
+    dirs = [Path(j.out).parent for j in jobs]
+    assert all(d.parent == out for d in dirs), sorted({str(d) for d in dirs})
+    assert len({d.name for d in dirs}) == len(names)  # one directory per run
+    assert [d.name for d in dirs[:: len(jobs) // len(names)]][2:] == ["x", "x-2", "x-2-2", "a_b"]
+
+
+def test_batch_names_a_run_given_as_dotdot_inside_out(run: Path, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """``batch ..`` wrote the result to ``OUT/..``, the directory holding OUT."""
+    from pinpoint_fg.experiments.batch import result_dir_names
+
+    monkeypatch.chdir(run / "masks")
+    assert result_dir_names([Path("..").absolute(), Path(run).absolute()]) == [run.name, f"{run.name}-2"]

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import inspect
 import logging
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,7 +75,8 @@ def result_dir_names(runs: Sequence[Path]) -> list[str]:
     used: set[str] = set()
     names = []
     for run in runs:
-        base = run.name or "run"
+        base = run.name if run.name not in ("", "..") else Path(os.path.realpath(run)).name  # `..` left OUT
+        base = base or "run"
         name, k = base, 1
         while name in used:
             k += 1

@@ -635,3 +635,21 @@ def test_batch_names_a_run_given_as_dotdot_inside_out(run: Path, tmp_path: Path,
 
     monkeypatch.chdir(run / "masks")
     assert result_dir_names([Path("..").absolute(), Path(run).absolute()]) == [run.name, f"{run.name}-2"]
+
+
+@pytest.mark.parametrize("command", [["track", "RUN", "--method", "svn"], ["batch", "RUN"]])
+@pytest.mark.parametrize("off", ["dense,sparse,grasp-position,grasp-perpendicular",
+                                 "dense,tip,tail,grasp-position,grasp-perpendicular,motion"])
+def test_disabling_every_measurement_is_a_usage_error(command: list[str], off: str, run: Path, tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: exit 0, the initial guess written with q95_trans_m = 1.9e-16 m (svn, no term left to inform it)."""
+    out = tmp_path / "r"
+    with pytest.raises(SystemExit) as exc:
+        main([str(run) if a == "RUN" else a for a in command] + ["--disable", off, "--out", str(out)])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--disable" in line and "nothing is left to track" in line
+    assert not out.exists()
+    # one measurement left is still a (Table III) variant
+    assert main(["track", str(run), "--method", "map", "--disable", "dense,sparse,grasp-position",
+                 "--out", str(out)]) == 0

@@ -24,6 +24,11 @@ def _disable_list(text: str) -> tuple[str, ...]:
     bad = [s for s in items if s not in SWITCHES]
     if bad:
         raise argparse.ArgumentTypeError(f"unknown switch(es) {bad}; choose from {', '.join(SWITCHES)}")
+    off = set(items)
+    if {"dense", "grasp-position", "grasp-perpendicular"} <= off and ("sparse" in off or {"tip", "tail"} <= off):
+        # no term left that sees the needle: the trackers wrote their initial guess with a q95 of ~1e-16 m
+        raise argparse.ArgumentTypeError("switches off every measurement (dense, tip, tail, grasp-position, "
+                                         "grasp-perpendicular): nothing is left to track the needle with")
     return items
 
 

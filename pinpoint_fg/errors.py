@@ -1,7 +1,10 @@
-"""The one exception type for bad input: it names the file, the row and the column."""
+"""The one exception type for bad input: it names the file, the row and the column (and one check shared by the
+commands that pool several inputs)."""
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from pathlib import Path
 
 
@@ -34,3 +37,15 @@ class InputError(ValueError):
             parts.append(f"column {shown}")
         parts.append(message)
         super().__init__(": ".join(parts))
+
+
+def refuse_repeated(paths: Sequence[str | Path], what: str) -> None:
+    """:class:`InputError` naming the second mention when two of ``paths`` are the same file or directory (after
+    resolving symbolic links): pooled twice, its samples or frames would silently weigh double. A path that cannot
+    be resolved (a symlink loop) is left to the reader, which names it."""
+    seen: dict[Path, Path] = {}
+    for p in paths:
+        key = Path(os.path.realpath(p))  # not Path.resolve: a symlink loop was its RuntimeError traceback
+        if key in seen:
+            raise InputError(f"{what} given twice (also as {seen[key]})", file=p)
+        seen[key] = Path(p)

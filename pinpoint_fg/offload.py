@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import sys
 import threading
 import time
@@ -65,7 +66,8 @@ _RECORDING: Recording | None = None  # the observer process's copy of the record
 
 def _worker_init(parent_pid: int) -> None:
     """Worker initializer: exit as soon as the tracking process is gone (e.g. SIGKILL), so no orphan keeps running
-    or keeps the caller's pipes open; use one BLAS / OpenMP thread.
+    or keeps the caller's pipes open; ignore Ctrl-C (the tracking process stops the workers); use one BLAS /
+    OpenMP thread.
 
     One thread: the worker shares the cores with the tracker; with its default pools (one thread per
     core) both processes' spinning BLAS threads fought for 2 cores, the tracker's steps took up to 3x
@@ -79,6 +81,9 @@ def _worker_init(parent_pid: int) -> None:
         os._exit(0)
 
     threading.Thread(target=watch, daemon=True).start()
+    # Ctrl-C is the tracking process's to handle (it stops the workers, :meth:`Offload.close`); a worker's own
+    # KeyboardInterrupt printed a traceback of the queue it was waiting on
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1)

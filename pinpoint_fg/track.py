@@ -194,7 +194,9 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
     if not frames:
         raise InputError("the recording has no frames", file=Path(run) / "frames.csv")
     settings = tracker.settings()
-    settings["noise_file"] = None if noise_file is None else str(noise_file)
+    # absolute, as the recording's path: `evaluate` reads it back from any directory (relative, it found another
+    # noise.json in the caller's directory, or none)
+    settings["noise_file"] = None if noise_file is None else str(Path(noise_file).absolute())
     if scale is not None:
         settings["spread_scale"] = scale
 

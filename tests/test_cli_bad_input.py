@@ -342,3 +342,314 @@ def test_writer_refuses_poses_the_reader_would_refuse(run: Path, tmp_path: Path)
     with pytest.raises(InputError, match="gt_x_m"):
         replace_ground_truth(copy_run, {0: far})
     assert not validate_run(copy_run)[1]
+
+
+# --- second audit: results read back, a reference of another recording, Ctrl-C in worker pools ---------------
+
+@pytest.fixture(scope="module")
+def map_result(run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("audit2") / "map"
+    assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 0
+    return out
+
+
+def _edit_estimate(result: Path, dest: Path, row: int, column: str, cell: str) -> Path:
+    shutil.copytree(result, dest)
+    lines = (dest / "estimates.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index(column)] = cell
+    lines[row] = ",".join(cells)
+    (dest / "estimates.csv").write_text("\n".join(lines) + "\n")
+    return dest
+
+
+@pytest.mark.parametrize("column", ["q95_trans_m", "q95_rot_rad", "latency_ms"])
+def test_hand_edited_negative_q95_or_latency_is_located(column: str, map_result: Path, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: evaluate said only "column 'q95_trans': q95_trans must be non-negative" (no file, no row),
+    calibrate-spread "method 'map': a result reports a negative q95", and a negative latency was averaged in."""
+    bad = _edit_estimate(map_result, tmp_path / "r", 3, column, "-0.5")
+    with pytest.raises(InputError) as exc:
+        read_result(bad)
+    assert (exc.value.file, exc.value.row, exc.value.column) == (str(bad / "estimates.csv"), 3, column)
+    assert main(["evaluate", str(bad), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "estimates.csv" in line and "row 3" in line and column in line
+    assert not (tmp_path / "ev" / "summary.csv").exists()
+    if column != "latency_ms":
+        assert main(["calibrate-spread", str(bad), "--out", str(tmp_path / "s.json")]) == 2
+        assert "row 3" in _one_error_line(capsys.readouterr().err)
+        assert not (tmp_path / "s.json").exists()
+
+
+def test_result_writer_refuses_a_negative_q95(map_result: Path, tmp_path: Path) -> None:
+    from pinpoint_fg.estimate import Estimate
+    from pinpoint_fg.io.result.writer import ResultWriter
+
+    res = read_result(map_result)
+
+    def estimate(k: int, q95_rot_rad: float) -> Estimate:
+        return Estimate(frame=int(res.frame[k]), t_s=float(res.t_s[k]), cam_T_needle=res.cam_T_needle[k],
+                        q95_trans_m=1e-3, q95_rot_rad=q95_rot_rad, iterations=1, latency_ms=1.0,
+                        particles=res.cam_T_needle[k][None], log_posterior=np.zeros(1))
+
+    with ResultWriter(tmp_path / "w", method="map", settings={}, recording_name="x") as w:
+        w.write(estimate(0, 0.01))
+        with pytest.raises(ValueError, match="q95_rot_rad must not be negative"):  # was written, then unreadable
+            w.write(estimate(1, -1e-3))
+    assert read_result(tmp_path / "w").frame.tolist() == [0]
+
+
+def test_reference_of_another_recording_is_refused_before_any_work(map_result: Path, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: exit 0 and "vs reference: – / – (0 / 0 frames)": a reference nobody was compared with."""
+    other_run = tmp_path / "other"
+    assert main(["simulate", "--scenario", "rotation", "--frames", "4", "--seed", "2", "--out", str(other_run)]) == 0
+    other = tmp_path / "other-result"
+    assert main(["track", str(other_run), "--method", "map", "--out", str(other)]) == 0
+    capsys.readouterr()
+    ev = tmp_path / "ev"
+    assert main(["evaluate", str(map_result), "--reference", str(other), "--out", str(ev)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(other / "result.json") in line and "recording_name" in line and "rotation-02" in line
+    assert not any(ev.iterdir())
+    # a reference of one of the evaluated recordings is still taken
+    both = [str(map_result), str(other)]
+    assert main(["evaluate", *both, "--reference", str(other), "--out", str(tmp_path / "ok")]) == 0
+    assert "(0 / 4 frames)" in capsys.readouterr().out
+
+
+def _interrupt_or_mark(job) -> tuple[str, float]:
+    """A stand-in for a tracking job: the first one is hit by Ctrl-C (the terminal sends SIGINT to the caller and
+    to its worker); every other one takes a moment and leaves a marker file."""
+    import os
+    import signal
+    import time
+
+    if job.method == "interrupt":
+        os.kill(os.getppid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(30)
+    time.sleep(0.3)
+    Path(job.out).touch()
+    return job.out, 0.3
+
+
+def test_ctrl_c_stops_the_pending_jobs_of_a_worker_pool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: an interrupted ``demo`` (or benchmark, ablate) kept running every pending job to its end
+    (ProcessPoolExecutor's shutdown waits for them; each worker took the next job after its KeyboardInterrupt):
+    42 s after Ctrl-C on a 150-frame demo, instead of 0.6 s."""
+    import signal
+
+    from pinpoint_fg.experiments import jobs as jobs_module
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # the test process must see Ctrl-C
+    try:
+        monkeypatch.setattr(jobs_module, "_track", _interrupt_or_mark)
+        job_list = [jobs_module.TrackJob("run", "interrupt", str(tmp_path / "interrupt"))]
+        job_list += [jobs_module.TrackJob("run", "mark", str(tmp_path / f"m{i}")) for i in range(10)]
+        with pytest.raises(KeyboardInterrupt):
+            jobs_module.run_tracking(job_list, workers=2)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    ran = sorted(p.name for p in tmp_path.glob("m*"))
+    # at most the job the other worker was running and the ones already handed to it; before: all 10
+    assert len(ran) <= 3, ran
+
+
+def _edit_settings(result: Path, dest: Path, **settings: object) -> Path:
+    shutil.copytree(result, dest)
+    doc = json.loads((dest / "result.json").read_text())
+    doc["settings"].update(settings)
+    (dest / "result.json").write_text(json.dumps(doc))
+    return dest
+
+
+@pytest.mark.parametrize(("settings", "says"), [
+    ({"disabled": 5}, "must be a list"),                          # was TypeError: 'int' object is not iterable
+    ({"noise_file": 5}, "must be a path or null"),                # was "RESULT/5: not found"
+    ({"noise_file": "/nonexistent/noise.json"}, "is not found"),  # was the noise file alone, not who needs it
+])
+def test_hand_edited_result_settings_are_located(settings: dict, says: str, map_result: Path, tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    bad = _edit_settings(map_result, tmp_path / "r", **settings)
+    assert main(["evaluate", str(bad), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bad / "result.json") in line and "settings." + next(iter(settings)) in line and says in line
+
+
+def test_noise_file_given_relative_is_found_from_another_directory(run: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """track recorded ``--noise`` as given: evaluated from another directory, a relative name found that
+    directory's noise.json (another file: silently other numbers) or none at all."""
+    (tmp_path / "a").mkdir()
+    NoiseConfig().save(tmp_path / "a" / "noise.json")
+    monkeypatch.chdir(tmp_path / "a")
+    assert main(["track", str(run), "--method", "map", "--noise", "noise.json", "--out", str(tmp_path / "r")]) == 0
+    recorded = json.loads((tmp_path / "r" / "result.json").read_text())["settings"]["noise_file"]
+    assert recorded == str(tmp_path / "a" / "noise.json")
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "noise.json").write_text("{}")  # another directory's noise.json, not the one tracked with
+    monkeypatch.chdir(tmp_path / "b")
+    assert main(["evaluate", str(tmp_path / "r"), "--out", str(tmp_path / "ev")]) == 0  # was 2, naming b/noise.json
+
+
+@pytest.mark.parametrize("command", ["calibrate", "ablate"])
+def test_a_run_given_twice_is_refused_not_pooled_twice(command: str, run: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: calibrate counted the run twice (8 frames -> 16 samples: a motion covariance replaced its default,
+    exit 0), ablate tracked it twice and weighed it double in Table III. ``batch`` already refused it."""
+    link = tmp_path / "same-run"
+    link.symlink_to(run)
+    out = tmp_path / ("noise.json" if command == "calibrate" else "ablation")
+    assert main([command, str(run), str(link), "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(link) in line and "given twice" in line and str(run) in line
+    assert not out.exists()
+
+
+def test_calibrate_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: exit 0, and the keypoint residuals of the needle's mirror image pooled into the noise file
+    (tip std 0.6 -> 42 px from one such frame of eight)."""
+    bad = tmp_path / "run"
+    shutil.copytree(run, bad)
+    lines = (bad / "frames.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[3].split(",")
+    cells[header.index("gt_z_m")] = str(-float(cells[header.index("gt_z_m")]))
+    lines[3] = ",".join(cells)
+    (bad / "frames.csv").write_text("\n".join(lines) + "\n")
+    assert not validate_run(bad)[1]  # a valid recording: its content is what is wrong
+    out = tmp_path / "noise.json"
+    assert main(["calibrate", str(bad), "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "frames.csv" in line and "row 3" in line and "gt_z_m" in line and "not in front" in line
+    assert not out.exists()
+    assert main(["calibrate", str(run), "--out", str(out)]) == 0  # the run as simulated still calibrates
+
+
+def test_an_idle_pool_worker_remembers_ctrl_c_without_a_traceback(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker waiting for its next job printed a KeyboardInterrupt traceback of its queue; it now only remembers
+    the interrupt and refuses the next job."""
+    from pinpoint_fg.experiments import jobs as jobs_module
+
+    monkeypatch.setattr(jobs_module, "_interrupted", False)
+    jobs_module._on_sigint(2, None)  # idle: no exception
+    assert jobs_module._interrupted
+    with pytest.raises(KeyboardInterrupt):
+        jobs_module._guarded(print, "never printed")
+    monkeypatch.setattr(jobs_module, "_interrupted", False)
+    assert jobs_module._guarded(int, "7") == 7
+
+
+def test_track_workers_leave_ctrl_c_to_the_tracking_process() -> None:
+    """Ctrl-C during ``track`` printed the verdict/observer workers' KeyboardInterrupt tracebacks beside the
+    command's one line; the workers now ignore SIGINT (the tracking process stops them)."""
+    import signal
+    import subprocess
+    import sys
+
+    code = ("import os, signal, time\nfrom pinpoint_fg.offload import _worker_init\n_worker_init(os.getppid())\n"
+            "os.kill(os.getpid(), signal.SIGINT)\ntime.sleep(0.2)\nprint('alive')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert done.returncode == 0 and done.stdout.strip() == "alive" and "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize(("command", "says"), [("evaluate", "--recording"), ("calibrate-spread", "correct")])
+def test_a_result_whose_recording_moved_names_the_result(command: str, says: str, map_result: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: "MOVED: not a directory (a run is ...)", not saying which result needs it or what to do."""
+    moved = tmp_path / "r"
+    shutil.copytree(map_result, moved)
+    doc = json.loads((moved / "result.json").read_text())
+    doc["recording_path"] = str(tmp_path / "moved-away")
+    (moved / "result.json").write_text(json.dumps(doc))
+    assert main([command, str(moved), "--out", str(tmp_path / "out")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(moved / "result.json") in line and "recording_path" in line and "moved-away" in line and says in line
+
+
+@pytest.mark.parametrize("command", ["evaluate", "calibrate-spread", "calibrate", "ablate"])
+def test_a_symlink_loop_given_as_input_is_one_line(command: str, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: evaluate and calibrate-spread gave pathlib's "RuntimeError: Symlink loop from ..." traceback
+    (Path.resolve while dropping duplicate results); calibrate and ablate, whose duplicate check is new, must not."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    out = tmp_path / ("out.json" if command.startswith("calibrate") else "out")
+    assert main([command, str(tmp_path / "a"), "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(tmp_path / "a") in line and "not a directory" in line
+
+
+@pytest.mark.parametrize("target", ["loop", "missing"])
+def test_out_as_a_symlink_that_cannot_be_followed_is_refused_before_any_work(target: str, run: Path, tmp_path: Path,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, with --overwrite: a loop was an OSError traceback when the noise file was saved (after the work);
+    a link to a missing file wrote the noise file there, outside --out's directory."""
+    out = tmp_path / "noise.json"
+    if target == "loop":
+        (tmp_path / "other").symlink_to(out)
+        out.symlink_to(tmp_path / "other")
+    else:
+        out.symlink_to(tmp_path / "elsewhere" / "noise.json")
+        (tmp_path / "elsewhere").mkdir()
+    assert main(["calibrate", str(run), "--out", str(out), "--overwrite"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(out) in line and "symbolic link that cannot be followed" in line
+    assert not (tmp_path / "elsewhere" / "noise.json").exists()
+    assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 2  # a directory output, too
+    assert "symbolic link" in _one_error_line(capsys.readouterr().err)
+
+
+def _renamed(run: Path, dest: Path, name: str) -> Path:
+    shutil.copytree(run, dest)
+    doc = json.loads((dest / "recording.json").read_text())
+    doc["name"] = name
+    (dest / "recording.json").write_text(json.dumps(doc))
+    return dest
+
+
+def test_ablate_keeps_every_result_inside_out_whatever_the_recording_names(run: Path, tmp_path: Path) -> None:
+    """The directory came from recording.json's free-text name, and ablate tracks with overwrite: ``..`` and
+    ``/abs/path`` put (and overwrote) results outside --out; runs named x, x, x-2 shared a directory."""
+    from pinpoint_fg.experiments.ablate import ablation_jobs
+
+    names = ["..", str(tmp_path / "elsewhere"), "x", "x", "x-2", "a/b"]
+    runs = [_renamed(run, tmp_path / f"run{i}", n) for i, n in enumerate(names)]
+    out = tmp_path / "ablation"
+    jobs = ablation_jobs(runs, out)
+    dirs = [Path(j.out).parent for j in jobs]
+    assert all(d.parent == out for d in dirs), sorted({str(d) for d in dirs})
+    assert len({d.name for d in dirs}) == len(names)  # one directory per run
+    assert [d.name for d in dirs[:: len(jobs) // len(names)]][2:] == ["x", "x-2", "x-2-2", "a_b"]
+
+
+def test_batch_names_a_run_given_as_dotdot_inside_out(run: Path, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """``batch ..`` wrote the result to ``OUT/..``, the directory holding OUT."""
+    from pinpoint_fg.experiments.batch import result_dir_names
+
+    monkeypatch.chdir(run / "masks")
+    assert result_dir_names([Path("..").absolute(), Path(run).absolute()]) == [run.name, f"{run.name}-2"]
+
+
+@pytest.mark.parametrize("command", [["track", "RUN", "--method", "svn"], ["batch", "RUN"]])
+@pytest.mark.parametrize("off", ["dense,sparse,grasp-position,grasp-perpendicular",
+                                 "dense,tip,tail,grasp-position,grasp-perpendicular,motion"])
+def test_disabling_every_measurement_is_a_usage_error(command: list[str], off: str, run: Path, tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: exit 0, the initial guess written with q95_trans_m = 1.9e-16 m (svn, no term left to inform it)."""
+    out = tmp_path / "r"
+    with pytest.raises(SystemExit) as exc:
+        main([str(run) if a == "RUN" else a for a in command] + ["--disable", off, "--out", str(out)])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--disable" in line and "nothing is left to track" in line
+    assert not out.exists()
+    # one measurement left is still a (Table III) variant
+    assert main(["track", str(run), "--method", "map", "--disable", "dense,sparse,grasp-position",
+                 "--out", str(out)]) == 0

@@ -62,7 +62,7 @@ from pinpoint_fg.eval.modes import (
 )
 from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
 from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.recording.schema import Recording, json_shown
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
@@ -144,6 +144,9 @@ def _disabled_of(res: Result) -> tuple[str, ...]:
     d = _settings_of(res).get("disabled") or ()
     if isinstance(d, str):
         d = [x for x in d.split(",") if x]
+    if not isinstance(d, list | tuple):  # a hand-edited number was a TypeError traceback
+        raise InputError(f'key "settings.disabled": must be a list of switch names, got {json_shown(d)}',
+                         file=res.root / "result.json")
     try:
         return normalized_disabled(tuple(str(x) for x in d))
     except ValueError as exc:
@@ -154,9 +157,15 @@ def _noise_of(res: Result) -> tuple[NoiseConfig, str | None]:
     path = _settings_of(res).get("noise_file")
     if not path:
         return NoiseConfig(), None
-    p = Path(str(path))
+    where = res.root / "result.json"
+    if not isinstance(path, str):
+        raise InputError(f'key "settings.noise_file": must be a path or null, got {json_shown(path)}', file=where)
+    p = Path(path)
     if not p.is_absolute() and not p.exists():
         p = res.root / p
+    if not p.is_file():  # moved or deleted since tracking: say which result needs it
+        raise InputError(f'key "settings.noise_file": the noise file it was tracked with, {p}, is not found',
+                         file=where)
     return NoiseConfig.load(p), str(p.resolve())
 
 
@@ -696,8 +705,8 @@ def evaluate_results(
     (sensitivity / false-bimodal rates become NaN) but still computes the accuracy floor.
     ``progress(message)`` is called at each stage when given.
     ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
-    bimodal verdicts of the results of the same recording; without it, the first ``mht`` result of
-    each recording among ``results`` is used.
+    bimodal verdicts of the results of the same recording (a reference of none of their recordings is an
+    :class:`InputError`); without it, the first ``mht`` result of each recording among ``results`` is used.
     ``spread_scale`` (:mod:`pinpoint_fg.io.spread_scale`): every result's q95 columns are multiplied
     by its method's factors before any metric or figure uses them (the files are not changed); the rows gain
     ``spread_kappa_trans`` / ``_rot`` and the raw coverage ``coverage_raw_trans`` / ``_rot``, and the text a
@@ -737,6 +746,21 @@ def evaluate_results(
         key = (str(rec.root.resolve()), noise_key, tuple(d for d in disabled if d != "motion"))
         loaded.append((res, rec, model, key))
 
+    refs: dict[str, Reference] = {}  # read before the long computations: a wrong one costs nothing
+    if reference is not None:
+        ref_res = read_result(reference)
+        if not (ref_res.root / MODES_CSV).exists():
+            raise InputError("the reference has no modes.csv (give a multi-hypothesis result)",
+                             file=ref_res.root / MODES_CSV)
+        ref_name = str(ref_res.info["recording_name"])
+        names_evaluated = sorted({rec.info.name for _, rec, _, _ in loaded})
+        if ref_name not in names_evaluated:  # it would judge nothing: every rate against it silently empty
+            raise InputError(f"the reference is of recording {ref_name!r}, but the results are of "
+                             f"{', '.join(map(repr, names_evaluated))}", file=ref_res.root / "result.json",
+                             column="recording_name")
+        rm = modes_of_result(ref_res)
+        refs[ref_name] = (str(ref_res.root), ref_res.frame, rm.weights)
+
     # ΔNLL labels and floor: once per (recording, likelihood), on the union of the frames needed
     needed: dict[tuple, set[int]] = {}
     for res, _, _, key in loaded:
@@ -751,15 +775,7 @@ def evaluate_results(
 
     say("modes")
     modes = [modes_of_result(res) for res, _, _, _ in loaded]
-    refs: dict[str, Reference] = {}
-    if reference is not None:
-        ref_res = read_result(reference)
-        if not (ref_res.root / MODES_CSV).exists():
-            raise InputError("the reference has no modes.csv (give a multi-hypothesis result)",
-                             file=ref_res.root / MODES_CSV)
-        rm = modes_of_result(ref_res)
-        refs[str(ref_res.info["recording_name"])] = (str(ref_res.root), ref_res.frame, rm.weights)
-    else:
+    if reference is None:
         for (res, rec, _, _), m in zip(loaded, modes, strict=True):
             if res.method == "mht" and m.source == "modes.csv" and rec.info.name not in refs:
                 refs[rec.info.name] = (str(res.root), res.frame, m.weights)

@@ -159,7 +159,7 @@ def fit_spread_scale(results: list[str | Path], level: float = LEVEL,
         if recorded_scale(res.info["settings"], res.root / "result.json") is not None:
             raise InputError("its q95 were scaled when it was tracked (track --spread-scale): fit on results "
                              "tracked without it", file=res.root / "result.json", column="settings.spread_scale")
-        rec = recording_of(res, cache, hint="the result does not say which recording it tracked")
+        rec = recording_of(res, cache, hint="correct recording_path in result.json")
         pooled.setdefault(res.method, []).append(frame_errors(res, rec))
     methods, unfitted = {}, {}
     for m, parts in sorted(pooled.items()):

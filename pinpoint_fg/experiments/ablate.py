@@ -19,15 +19,17 @@ first failure is raised.
 from __future__ import annotations
 
 import multiprocessing
+import re
 from collections.abc import Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
 from tqdm import tqdm
 
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, refuse_repeated
 from pinpoint_fg.eval.report import ABLATION_VARIANTS, evaluate_results
+from pinpoint_fg.experiments.jobs import interruptible_pool
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 
@@ -63,26 +65,38 @@ def _run_job(job: AblationJob) -> str:
     return job.out
 
 
+def _dir_name(name: str) -> str:
+    """A recording's name as one directory name inside ``out``: every run of characters other than letters,
+    digits, ``.``, ``_`` and ``-`` becomes ``_``; a name of dots only becomes ``run``. (The name is free text in
+    recording.json: ``..`` or ``/data/x`` put the results, tracked with overwrite, outside ``out``.)"""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_")
+    return safe if safe.strip(".") else "run"
+
+
 def ablation_jobs(
     runs: Sequence[Path | str], out: Path | str, frames: int | None = None
 ) -> list[AblationJob]:
     """Every (run, variant) job with its result directory ``out/<run name>/<variant>``.
 
-    The run name is the recording's name; runs that share a name get ``-2``, ``-3``, ... appended.
-    Raises :class:`InputError` when a run cannot be read.
+    The run name is the recording's name (as a directory name, :func:`_dir_name`); runs that share a name get
+    ``-2``, ``-3``, ... appended.
+    Raises :class:`InputError` when a run cannot be read or is given twice.
     """
     if not runs:
         raise InputError("ablate needs at least one recorded run")
+    refuse_repeated(runs, "run")  # was tracked twice and weighed double in Table III
     if frames is not None and int(frames) < 1:
         raise InputError(f"--frames must be >= 1, got {frames}")
     out = Path(out)
     jobs: list[AblationJob] = []
-    seen: dict[str, int] = {}
+    used: set[str] = set()
     for run in runs:
-        name = read_recording(run).info.name
-        seen[name] = seen.get(name, 0) + 1
-        if seen[name] > 1:
-            name = f"{name}-{seen[name]}"
+        base = _dir_name(read_recording(run).info.name)
+        name, k = base, 1
+        while name in used:  # (a count per name gave x, x-2, x-2 for runs named x, x, x-2: one overwrote another)
+            k += 1
+            name = f"{base}-{k}"
+        used.add(name)
         for variant, method, disable, _ in ABLATION_VARIANTS:
             jobs.append(AblationJob(
                 run=str(Path(run)), variant=variant, method=method, disable=tuple(disable),
@@ -110,8 +124,8 @@ def run_jobs(
                 bar.update(1)
         else:
             ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=int(workers), mp_context=ctx) as pool:
-                futures: dict[Future, AblationJob] = {pool.submit(_run_job, job): job for job in jobs}
+            with interruptible_pool(int(workers), mp_context=ctx) as submit:  # Ctrl-C stops every job
+                futures: dict[Future, AblationJob] = {submit(_run_job, job): job for job in jobs}
                 for fut in as_completed(futures):
                     job = futures[fut]
                     try:

@@ -3,9 +3,8 @@
 ``batch_track(runs, method, OUT)`` runs :func:`pinpoint_fg.track.track_recording` once per run,
 each as one Dask task, and writes the result of run ``RUN`` to ``OUT/<RUN's directory name>``:
 the same files a single ``pinpoint-fg track RUN --method M --out OUT/<name>`` writes, identical
-except the ``latency_ms`` column (timing) and, in ``result.json``, a noise file path made
-absolute. This is how many runs scale past one machine: point ``scheduler`` at a running
-``dask scheduler`` whose workers share the file system.
+except the ``latency_ms`` column (timing). This is how many runs scale past one machine: point
+``scheduler`` at a running ``dask scheduler`` whose workers share the file system.
 
 Decisions:
 
@@ -32,12 +31,13 @@ from __future__ import annotations
 
 import inspect
 import logging
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, refuse_repeated
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.noise import NoiseConfig
@@ -75,7 +75,8 @@ def result_dir_names(runs: Sequence[Path]) -> list[str]:
     used: set[str] = set()
     names = []
     for run in runs:
-        base = run.name or "run"
+        base = run.name if run.name not in ("", "..") else Path(os.path.realpath(run)).name  # `..` left OUT
+        base = base or "run"
         name, k = base, 1
         while name in used:
             k += 1
@@ -112,13 +113,8 @@ def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: in
         raise TypeError(f"unknown track options {unknown}; known: {', '.join(TRACK_OPTIONS)}")
     if int(workers) < 1:
         raise InputError(f"must be >= 1, got {workers}", column="--workers")
+    refuse_repeated(runs, "run")
     paths = [Path(r).absolute() for r in runs]
-    seen: dict[Path, Path] = {}
-    for given, p in zip(runs, paths, strict=True):
-        key = p.resolve()
-        if key in seen:
-            raise InputError(f"run given twice (also as {seen[key]})", file=given)
-        seen[key] = Path(given)
     options = dict(options)
     if options.get("noise_file") is not None:
         noise = Path(options["noise_file"]).absolute()

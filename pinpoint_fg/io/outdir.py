@@ -11,7 +11,8 @@ Rules (every subcommand that writes goes through :func:`prepare_output_dir` or
 * an output file that already exists is refused unless ``overwrite``; a directory in its place is
   always refused;
 * a path the operating system cannot use (a NUL byte, a component longer than the file system
-  allows, no permission) is refused.
+  allows, no permission) is refused, and so is a symbolic link that cannot be followed (a loop, or
+  a missing target: writing through it would create a file elsewhere).
 
 Every refusal is an :class:`~pinpoint_fg.errors.InputError` naming the path (one line, exit code 2
 on the command line). The directory is created (with its parents) when the checks pass.
@@ -63,12 +64,26 @@ def _os_problem(exc: OSError) -> str:
     return exc.strerror or type(exc).__name__
 
 
+def _broken_link(p: Path) -> str | None:
+    """Why the symbolic link ``p`` cannot be followed (a loop, a missing target), None when it can or is no link."""
+    if not p.is_symlink():
+        return None
+    try:
+        os.stat(p)
+    except OSError as exc:
+        return f"--out is a symbolic link that cannot be followed ({_os_problem(exc)})"
+    return None
+
+
 def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str) -> Path:
     """The checks of :func:`prepare_output_dir` without creating anything (for commands that read and
     validate all their input first and must leave nothing behind when it is bad)."""
     p = _usable(path, what)
     try:
         if p.exists() or p.is_symlink():
+            broken = _broken_link(p)
+            if broken is not None:
+                raise InputError(f"{broken}; choose another --out for the {what}", file=p)
             if not p.is_dir():
                 raise InputError(f"--out exists and is a file, not a directory; choose another --out for the {what}",
                                  file=p)
@@ -116,6 +131,9 @@ def prepare_output_file(path: str | os.PathLike, overwrite: bool, what: str) -> 
         if p.is_dir():
             raise InputError(f"--out is a directory; name a file for the {what}", file=p)
         if p.exists() or p.is_symlink():
+            broken = _broken_link(p)  # a loop was an OSError traceback when writing, after the work
+            if broken is not None:
+                raise InputError(f"{broken}; choose another --out for the {what}", file=p)
             if not overwrite:
                 raise InputError(f"--out exists; pass --overwrite to replace the {what}, or choose another --out",
                                  file=p)

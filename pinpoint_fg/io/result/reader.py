@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import re
 from collections.abc import Iterable
 from pathlib import Path
@@ -181,11 +182,12 @@ def expand_result_dirs(paths: Iterable[str | Path]) -> list[Path]:
             out.extend(subs or [p])
         else:
             out.append(p)
-    seen: set[Path] = set()
+    seen: set[str] = set()
     unique = []
     for p in out:
-        if p.resolve() not in seen:
-            seen.add(p.resolve())
+        key = os.path.realpath(p)  # not Path.resolve: a symlink loop was its RuntimeError traceback
+        if key not in seen:
+            seen.add(key)
             unique.append(p)
     return unique
 
@@ -223,9 +225,10 @@ def read_result(out_dir: str | Path) -> Result:
     bimodal = np.zeros(F, dtype=bool)
     iters = np.zeros(F, dtype=np.int64)
     for r, cells in enumerate(rows, start=1):
-        q95_t[r - 1] = _num(est_path, r, "q95_trans_m", cells[idx["q95_trans_m"]], allow_nan=True)
-        q95_r[r - 1] = _num(est_path, r, "q95_rot_rad", cells[idx["q95_rot_rad"]], allow_nan=True)
-        lat[r - 1] = _num(est_path, r, "latency_ms", cells[idx["latency_ms"]], allow_nan=True)
+        for c, arr in (("q95_trans_m", q95_t), ("q95_rot_rad", q95_r), ("latency_ms", lat)):
+            arr[r - 1] = _num(est_path, r, c, cells[idx[c]], allow_nan=True)
+            if arr[r - 1] < 0:  # a radius and a duration: the writer never writes a negative one
+                raise InputError(f"must not be negative, got {shown(cells[idx[c]])}", file=est_path, row=r, column=c)
         b = cells[idx["bimodal"]]
         if b not in ("0", "1"):
             raise InputError(f"must be 0 or 1, got {shown(b)}", file=est_path, row=r, column="bimodal")
@@ -376,8 +379,8 @@ def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> R
     """The recording ``result.json`` names (``recording_path``; relative: to the result), read once per path.
 
     ``cache`` maps resolved paths to recordings already read. The recording's name must be the result's
-    ``recording_name``. :class:`InputError` naming ``result.json`` otherwise, or when the path is empty (with
-    ``hint``, e.g. how to pass the recording instead, appended to the message).
+    ``recording_name``. :class:`InputError` naming ``result.json`` otherwise, or when the path is empty or names
+    no directory (with ``hint``, e.g. how to pass the recording instead, appended to the message).
     """
     path = res.info.get("recording_path")
     if not path:
@@ -386,7 +389,10 @@ def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> R
     p = Path(str(path))
     if not p.is_absolute() and not p.exists():
         p = res.root / p
-    key = p.resolve()
+    key = Path(os.path.realpath(p))
+    if key not in cache and not p.is_dir():  # moved or deleted since tracking: say which result needs it
+        raise InputError(f"the recording it was tracked on, {p}, is not found (moved or deleted?)"
+                         f"{': ' + hint if hint else ''}", file=res.root / "result.json", column="recording_path")
     if key not in cache:
         cache[key] = read_recording(p)
     rec = cache[key]

@@ -197,7 +197,8 @@ class ResultWriter:
         _scalar(f"frame {f}: t_s", est.t_s, allow_nan=False)
         check_pose(f"frame {f}: cam_T_needle", est.cam_T_needle)
         for name in ("q95_trans_m", "q95_rot_rad", "latency_ms"):
-            _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True)
+            if _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True) < 0:  # the reader refuses it
+                raise ValueError(f"frame {f}: {name} must not be negative, got {getattr(est, name)!r}")
         if not isinstance(est.bimodal, bool | np.bool_) and est.bimodal not in (0, 1):
             raise ValueError(f"frame {f}: bimodal must be a bool, got {est.bimodal!r}")
         it = est.iterations

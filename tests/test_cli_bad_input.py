@@ -5,7 +5,9 @@ the file and the key (or a usage error naming the flag) before any work starts."
 from __future__ import annotations
 
 import copy
+import errno
 import json
+import os
 import shutil
 import zlib
 from dataclasses import replace
@@ -653,3 +655,25 @@ def test_disabling_every_measurement_is_a_usage_error(command: list[str], off: s
     # one measurement left is still a (Table III) variant
     assert main(["track", str(run), "--method", "map", "--disable", "dense,sparse,grasp-position",
                  "--out", str(out)]) == 0
+
+
+# --- the machine refuses a file operation ------------------------------------------------------------------
+
+def test_a_full_disk_while_writing_is_one_line_and_keeps_the_finished_frames(
+        run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """An OSError other than "not found" (here ENOSPC from the result writer at frame 3) was a traceback."""
+    from pinpoint_fg.io.result.writer import ResultWriter
+
+    out = tmp_path / "r"
+    real = ResultWriter.write
+
+    def write(self, est):
+        if int(est.frame) == 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(out / "estimates.csv"))
+        return real(self, est)
+
+    monkeypatch.setattr(ResultWriter, "write", write)
+    assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line == f"error: {out / 'estimates.csv'}: {os.strerror(errno.ENOSPC)}"
+    assert read_result(out).frame.tolist() == [0, 1, 2]

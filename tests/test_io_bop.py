@@ -259,6 +259,17 @@ def test_cli_import_then_validate(bop: dict, tmp_path: Path, capsys: pytest.Capt
     assert rec.info.frame_rate_hz == 10.0 and rec.frames[3].t_s == pytest.approx(0.3)
 
 
+@pytest.mark.parametrize("sigma", ["1e308", "-1", "nan"])
+def test_cli_refuses_keypoint_noise_off_any_image(bop: dict, tmp_path: Path, sigma: str,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "kp"
+    assert main(["import-bop", str(bop["scene"]), "--model", str(bop["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out), "--keypoints-from-gt", sigma, "--no-images"]) == 2  # 1e308: exit 0, no keypoints
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "--keypoints-from-gt" in err
+    assert not out.exists() or not any(out.iterdir())
+
+
 def test_cli_refuses_a_grasp_off_the_needle(bop: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "off"
     assert main(["import-bop", str(bop["scene"]), "--model", str(bop["model"]), "--obj-id", str(NEEDLE_OBJ_ID),

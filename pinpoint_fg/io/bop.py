@@ -293,12 +293,18 @@ def _mask_reader(scene: Path, cfg: BopImportConfig) -> Callable[[int, int, tuple
 # --------------------------------------------------------------------------------------------
 
 
+#: Largest accepted standard deviation of synthetic keypoints (``--keypoints-from-gt``), pixels.
+MAX_KEYPOINT_SIGMA_PX = 1000.0
+
+
 def _check_config(cfg: BopImportConfig) -> None:
     if not math.isfinite(cfg.fps) or cfg.fps <= 0:
         raise InputError(f"fps (--fps) must be > 0, got {cfg.fps}")
     if cfg.keypoints_sigma_px is not None and not (math.isfinite(cfg.keypoints_sigma_px)
-                                                   and cfg.keypoints_sigma_px >= 0):
-        raise InputError(f"keypoint noise (--keypoints-from-gt) must be >= 0 px, got {cfg.keypoints_sigma_px}")
+                                                   and 0 <= cfg.keypoints_sigma_px <= MAX_KEYPOINT_SIGMA_PX):
+        # beyond the bound every synthetic keypoint lands off the image: 1e308 imported a run with none, exit 0
+        raise InputError(f"keypoint noise (--keypoints-from-gt) must lie in 0 .. {MAX_KEYPOINT_SIGMA_PX:g} px, "
+                         f"got {cfg.keypoints_sigma_px}")
     if cfg.instance is not None and cfg.instance < 0:
         raise InputError(f"instance (--instance) must be >= 0, got {cfg.instance}")
     if cfg.mask_color is not None and (len(cfg.mask_color) != 3 or any(not 0 <= c <= 255 for c in cfg.mask_color)):

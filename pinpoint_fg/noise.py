@@ -264,12 +264,9 @@ class NoiseConfig:
         """Write the JSON file; :class:`InputError` (nothing written) for a variance :meth:`load` would refuse
         (e.g. ``calibrate`` on noise-free data)."""
         for k, noise in self.residuals.items():
-            w = np.linalg.eigvalsh(noise.cov)
-            lo, hi = NOISE_VARIANCE_FLOOR.get(k, NOISE_VARIANCE_RANGE[0]), NOISE_VARIANCE_RANGE[1]
-            if w[0] < lo or w[-1] > hi:
-                raise InputError(f"residual {k!r} has a variance of {w[0] if w[0] < lo else w[-1]:.3g}, outside "
-                                 f"{lo:g} .. {hi:g} in {RESIDUAL_UNITS.get(k, 'its unit')} squared, which a noise "
-                                 "file may not hold", file=Path(path))
+            problem = _variance_problem(k, noise.cov)
+            if problem is not None:
+                raise InputError(f"residual {k!r}: {problem}; a noise file may not hold it", file=Path(path))
         Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
 
     @classmethod
@@ -306,12 +303,9 @@ class NoiseConfig:
                 raise InputError(f"{where}: {exc}", file=path) from exc
             if parsed[k].dim != d:
                 raise InputError(f"{where}: dimension {parsed[k].dim}, expected {d}", file=path)
-            lo, hi = NOISE_VARIANCE_FLOOR[k], NOISE_VARIANCE_RANGE[1]
-            w = np.linalg.eigvalsh(parsed[k].cov)
-            if w[0] < lo or w[-1] > hi:
-                raise InputError(f"{where}: 'cov' has a variance of {w[0] if w[0] < lo else w[-1]:.3g}, accepted "
-                                 f"{lo:g} .. {hi:g} (a standard deviation of {np.sqrt(lo):g} to 1e6 "
-                                 f"{RESIDUAL_UNITS[k]})", file=path)
+            problem = _variance_problem(k, parsed[k].cov)
+            if problem is not None:
+                raise InputError(f"{where}: {problem}", file=path)
         return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path))
 
     def process_variance_whitened(self, scale: np.ndarray) -> float:
@@ -341,6 +335,17 @@ MAX_NOISE_ABS_MEAN = 1e6
 #: Largest accepted ``|cov - cov^T|`` relative to ``max |cov|`` (rounding; a larger asymmetry is a typo that
 #: symmetrising would silently turn into another covariance).
 NOISE_COV_ASYMMETRY_TOL = 1e-9
+
+
+def _variance_problem(name: str, cov: np.ndarray) -> str | None:
+    """Why residual ``name``'s ``cov`` may not be in a noise file (a variance outside its floor ..
+    :data:`NOISE_VARIANCE_RANGE`'s top), or None: the one check :meth:`NoiseConfig.load` and ``save`` share."""
+    lo, hi = NOISE_VARIANCE_FLOOR.get(name, NOISE_VARIANCE_RANGE[0]), NOISE_VARIANCE_RANGE[1]
+    w = np.linalg.eigvalsh(cov)
+    if w[0] >= lo and w[-1] <= hi:
+        return None
+    return (f"'cov' has a variance of {w[0] if w[0] < lo else w[-1]:.3g}, accepted {lo:g} .. {hi:g} (a standard "
+            f"deviation of {np.sqrt(lo):g} to 1e6 {RESIDUAL_UNITS.get(name, 'in its unit')})")
 
 
 def _check_entry_types(entry: dict, where: str, path: Path) -> None:

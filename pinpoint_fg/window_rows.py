@@ -126,7 +126,8 @@ def share_books(window: Window, index: np.ndarray | list[int], source_index: np.
     valid = window._memo.holds(window._prior_key(window.poses[0]))
     T0 = window.poses[0, index]
     old_prior = (window.prior_mean[index], window.prior_W[index])
-    old = whiten_prior(*res.pose_prior_residual(T0, old_prior[0]), old_prior[1])
+    # the old prior's share, to patch the memo (at L = 1 right after a push no memo holds: nothing to patch)
+    old = whiten_prior(*res.pose_prior_residual(T0, old_prior[0]), old_prior[1]) if valid else None
     window.prior_mean[index] = window.prior_mean[source_index]
     window.prior_W[index] = window.prior_W[source_index]
     window.evidence[index] = window.evidence[source_index]

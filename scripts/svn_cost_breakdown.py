@@ -35,7 +35,8 @@ PARTS = (
     (window_module.Window, "move_newest", "move_newest"),
     (svn_module, "stein_step", "stein_step"), (svn_module, "local", "local (chart)"),
     (svn_module, "se3_right_jacobian", "se3_right_jacobian"), (svn_module, "floor_hessians", "floor_hessians (svn)"),
-    (svn_module, "summarize", "summarize"), (svn_module, "FrameLikelihood", "FrameLikelihood()"),
+    (svn_module, "tangent_spread", "tangent_spread (summary, modes)"),
+    (svn_module, "FrameLikelihood", "FrameLikelihood()"),
     (np, "quantile", "np.quantile"),
 )
 

@@ -81,9 +81,9 @@ from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.modes import Mode
-from pinpoint_fg.posterior.spread import tangent_spread
+from pinpoint_fg.posterior.spread import TangentSpread, tangent_spread
 from pinpoint_fg.stein import SteinConfig, floor_hessians, quantile_rows, stein_step
-from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible, summarize
+from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible
 from pinpoint_fg.trackers.svn_modes import (
     SCALE,
     Basins,
@@ -342,8 +342,12 @@ class SvnTracker(Tracker):
         total[dead] = total[index[dead]]
         return index
 
-    def _modes(self, found: Basins, index: np.ndarray, i_map: int) -> tuple[Mode, ...]:
-        """The reported modes (module docstring, step 7): evidence weights, best K, dominant first."""
+    def _modes(self, found: Basins, index: np.ndarray, i_map: int, spread: TangentSpread) -> tuple[Mode, ...]:
+        """The reported modes (module docstring, step 7): evidence weights, best K, dominant first.
+
+        ``spread``: every hypothesis's spread about the MAP ``i_map`` (the estimate's summary), which is the MAP's
+        mode's own when that mode holds every hypothesis (the usual single-mode frame): not computed twice.
+        """
         labels = found.labels[index]
         P = self.window.newest
         weights = found.weights
@@ -353,7 +357,9 @@ class SvnTracker(Tracker):
             if not members.any():
                 continue
             peak = P[i_map] if m == labels[i_map] else found.peaks[found.reps[m]]
-            if members.sum() >= 7:
+            if m == labels[i_map] and members.all():
+                cov = spread.cov_xi
+            elif members.sum() >= 7:
                 cov = tangent_spread(peak, P[members]).cov_xi
             else:
                 H = self._lin.hess[found.reps[m]] if self._lin is not None else np.eye(6)
@@ -450,16 +456,18 @@ class SvnTracker(Tracker):
         else:  # the highest posterior density: every compared mode's best hypothesis is at its peak
             i = int(np.argmin(value))
         index = self._prune(np.where(found.converged, found.log_evidence, np.inf), value)
-        modes = self._modes(found, index, i)
+        particles = self.window.newest.copy()
+        logp = -value
+        spread = tangent_spread(particles[i], particles)  # :func:`~pinpoint_fg.trackers.base.summarize`'s, once
+        modes = self._modes(found, index, i, spread)
         self._prev_map = i if index[i] == i else None
         if self.svn.modes.shared_books:  # applied after the next marginalisation (module docstring, step 7)
             self._books = book_sources(found, found.reps[np.isin(found.reps, polished)], index)
+        q_t, q_r, cov = float(spread.q95_trans_m), float(spread.q95_rot_rad), np.asarray(spread.cov_xi)
+        # the uncertainty summary included, as in every other tracker's latency
         latency_ms = 1e3 * (time.perf_counter() - t0)
         self.frames_seen += 1
         self._times.append((observation.frame, observation.t_s))
-        particles = self.window.newest.copy()
-        logp = -value
-        i, q_t, q_r, cov = summarize(particles, logp, map_index=i)
         smoothed = None
         self._last_map = i
         if self.config.window > 1 and self.window.size == self.config.window:

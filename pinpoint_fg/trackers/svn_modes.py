@@ -272,10 +272,13 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
     from_prediction = False
     if predicted is not None and np.isin(found.labels[predicted[0]], chosen):
         row, m = int(predicted[0]), int(found.labels[predicted[0]])
-        one = window.subset([row])
-        one.poses[-1, 0] = predicted[1]
-        lin_one = predicted[2] if len(predicted) > 2 else one.linearize()
-        peak = one.newest @ se3_exp(laplace_terms(lin_one, one.evidence)[0])
+        if len(predicted) > 2:  # the model is given: the one-hypothesis window itself is not needed
+            lin_one, start = predicted[2], np.asarray(predicted[1], dtype=float)[None]
+        else:
+            one = window.subset([row])
+            one.poses[-1, 0] = predicted[1]
+            lin_one, start = one.linearize(), one.newest
+        peak = start @ se3_exp(laplace_terms(lin_one, window.evidence[[row]])[0])
         starts_m = np.asarray(cand)[np.asarray(cand_mode) == m]
         if np.min(scaled_distance(peak[0], found.peaks[starts_m]), initial=np.inf) > 0.5:  # a peak not yet sought
             cand.append(row)

@@ -7,7 +7,7 @@ import pytest
 
 from factors.lie import retract, se3_exp
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.posterior.spread import tangent_spread, weighted_quantile
+from pinpoint_fg.posterior.spread import tangent_covariance, tangent_spread, weighted_quantile
 
 # ----------------------------------------------------------------------------- weighted quantile
 
@@ -90,3 +90,15 @@ def test_tangent_spread_weighted_mean_and_cov_hand_case() -> None:
     assert sF.q95_trans_m.shape == (2,)
     with pytest.raises(InputError):
         tangent_spread(np.tile(T_ref, (3, 1, 1)), PF)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_tangent_covariance_is_tangent_spreads_cov_bit_for_bit(weighted: bool) -> None:
+    """The covariance alone (SVN's modes) is the very same numbers as the full spread's, and checks alike."""
+    rng = np.random.default_rng(3)
+    T_ref = se3_exp(rng.normal(size=6) * [1, 1, 1, 0.01, 0.01, 0.01])
+    P = retract(T_ref[None], rng.normal(size=(40, 6)) * [0.2, 0.2, 0.2, 2e-3, 2e-3, 2e-3])
+    w = rng.uniform(0.1, 1.0, size=40) if weighted else None
+    assert tangent_covariance(T_ref, P, w).tobytes() == tangent_spread(T_ref, P, w).cov_xi.tobytes()
+    with pytest.raises(InputError):
+        tangent_covariance(T_ref, P[:, :3])

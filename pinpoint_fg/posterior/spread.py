@@ -112,6 +112,21 @@ def tangent_spread(
     a single set (N, 4, 4) with ``T_ref`` (4, 4) gives scalar quantiles. ``weights`` (F, N) or
     (N,), ``None`` = equal; they are normalised per set.
     """
+    w, xi = _tangent_vectors(T_ref, particles_T, weights)
+    r_rot = np.linalg.norm(xi[..., :3], axis=-1)
+    r_trans = np.linalg.norm(xi[..., 3:], axis=-1)
+    mean, cov = _moments(w, xi)
+    return TangentSpread(
+        q95_trans_m=weighted_quantile(r_trans, w, q),
+        q95_rot_rad=weighted_quantile(r_rot, w, q),
+        mean_xi=mean,
+        cov_xi=cov,
+    )
+
+
+def _tangent_vectors(T_ref: np.ndarray, particles_T: np.ndarray, weights: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Checked, normalised weights ``(..., N)`` and tangent vectors ``xi_i = Log(T_ref^-1 T_i)`` ``(..., N, 6)``."""
     P = pose_array("particles_T", particles_T, min_batch_dims=1)
     T_ref = pose_array("T_ref", T_ref)
     mismatch = f"T_ref {T_ref.shape} does not match particles_T {P.shape}"
@@ -126,15 +141,16 @@ def tangent_spread(
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T_ref))):
         raise InputError("tangent_spread: poses must be finite", column="particles_T")
     w = _weights(weights, P.shape[:-2])
-    xi = local(T_ref[..., None, :, :], P)  # (..., N, 6)
-    r_rot = np.linalg.norm(xi[..., :3], axis=-1)
-    r_trans = np.linalg.norm(xi[..., 3:], axis=-1)
+    return w, local(T_ref[..., None, :, :], P)  # (..., N, 6)
+
+
+def _moments(w: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean ``(..., 6)`` and (biased) covariance ``(..., 6, 6)`` of tangent vectors ``xi (..., N, 6)``."""
     mean = np.einsum("...n,...nk->...k", w, xi)
     d = xi - mean[..., None, :]
-    cov = np.einsum("...n,...nj,...nk->...jk", w, d, d)
-    return TangentSpread(
-        q95_trans_m=weighted_quantile(r_trans, w, q),
-        q95_rot_rad=weighted_quantile(r_rot, w, q),
-        mean_xi=mean,
-        cov_xi=cov,
-    )
+    return mean, np.einsum("...n,...nj,...nk->...jk", w, d, d)
+
+
+def tangent_covariance(T_ref: np.ndarray, particles_T: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """:func:`tangent_spread`'s ``cov_xi`` alone (the same numbers), without its quantiles."""
+    return _moments(*_tangent_vectors(T_ref, particles_T, weights))[1]

@@ -59,7 +59,7 @@ from scipy.spatial import cKDTree
 
 from pinpoint_fg.posterior.bimodality import systematic_resample, tangent_at_map
 from pinpoint_fg.posterior.modes import Mode
-from pinpoint_fg.posterior.spread import tangent_spread
+from pinpoint_fg.posterior.spread import tangent_covariance
 
 K_MAX = 4
 """Most modes reported per frame."""
@@ -215,7 +215,7 @@ def modes_from_particles(
     modes = []
     for c in sorted(clusters, key=lambda c: (-mass(c), rank[peak(c)])):
         i = peak(c)
-        cov = tangent_spread(P[i], P[c], w[c]).cov_xi
+        cov = tangent_covariance(P[i], P[c], w[c])
         modes.append(Mode(cam_T_needle=P[i].copy(), weight=mass(c), cov_xi=0.5 * (cov + cov.T)))
     return tuple(modes)
 

@@ -81,7 +81,7 @@ from pinpoint_fg.init import InitConfig, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.modes import Mode
-from pinpoint_fg.posterior.spread import TangentSpread, tangent_spread
+from pinpoint_fg.posterior.spread import TangentSpread, tangent_covariance, tangent_spread
 from pinpoint_fg.stein import SteinConfig, floor_hessians, quantile_rows, stein_step
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible
 from pinpoint_fg.trackers.svn_modes import (
@@ -360,7 +360,7 @@ class SvnTracker(Tracker):
             if m == labels[i_map] and members.all():
                 cov = spread.cov_xi
             elif members.sum() >= 7:
-                cov = tangent_spread(peak, P[members]).cov_xi
+                cov = tangent_covariance(peak, P[members])
             else:
                 H = self._lin.hess[found.reps[m]] if self._lin is not None else np.eye(6)
                 cov = floor_hessians((H * np.outer(SCALE, SCALE))[None], eps=1e-6)[1][0] * np.outer(SCALE, SCALE)

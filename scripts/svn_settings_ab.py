@@ -2,7 +2,8 @@
 
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_settings_ab.py FIELD VALUE_A VALUE_B
 RUN [RUN ...]`` (e.g. ``floor_each true false /tmp/runs/normal-01``; FIELD is an
-:class:`~pinpoint_fg.trackers.svn.SvnSettings` field, the values are parsed as JSON: ``true``, ``2``, ``0.5``).
+:class:`~pinpoint_fg.trackers.svn.SvnSettings` field, or ``modes.NAME`` for a
+:class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one; the values are parsed as JSON: ``true``, ``2``, ``0.5``).
 
 Both trackers are stepped in turn on every frame (lock-step, one thread: load on the machine hits both alike),
 with the run's suggested switches (``track``'s own). Prints per run the median thread-CPU milliseconds per frame
@@ -31,6 +32,15 @@ from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.posterior.summary import bimodal_from_modes, modes_of_estimate
 from pinpoint_fg.track import suggested_disable, tracker_config
 from pinpoint_fg.trackers.svn import SvnSettings, SvnTracker
+from pinpoint_fg.trackers.svn_modes import ModeSettings
+
+
+def _with(field: str, value: object) -> SvnSettings:
+    """The default settings with ``field`` set to ``value``; ``modes.NAME`` sets a :class:`ModeSettings` field."""
+    if field.startswith("modes."):
+        modes = dataclasses.replace(ModeSettings(), **{field.removeprefix("modes."): value})
+        return dataclasses.replace(SvnSettings(), modes=modes)
+    return dataclasses.replace(SvnSettings(), **{field: value})
 
 
 def main() -> None:
@@ -41,7 +51,7 @@ def main() -> None:
     ap.add_argument("runs", type=Path, nargs="+")
     args = ap.parse_args()
     values = [json.loads(args.value_a), json.loads(args.value_b)]
-    settings = [dataclasses.replace(SvnSettings(), **{args.field: v}) for v in values]
+    settings = [_with(args.field, v) for v in values]
     totals = np.zeros(2)
     print(f"{'run':16s} " + " | ".join(f"{args.field}={v!s:6s} med  no-mask  mask   mm    deg  kept  bim"
                                         for v in values) + " | B/A")

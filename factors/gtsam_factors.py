@@ -21,7 +21,6 @@ import numpy as np
 from factors import residuals as res
 from factors.geometry import PinholeCamera, _finite_float, as_points_px, as_vector
 
-
 #: Largest accepted |pixel coordinate| of a measurement or an intrinsic (``K``'s entries), pixels: beyond it the
 #: residuals' squares overflow (a backbone pixel at 1e200 made every error NaN, a keypoint at 1e308 inf).
 MAX_ABS_PX = 1e7
@@ -66,7 +65,7 @@ def _check_key(name: str, key: object) -> int:
 
 
 def _number(name: str, value: object, bound: float, positive: bool = False) -> float:
-    """``value`` as a finite float with ``|value| <= bound`` (and ``> 0`` when ``positive``), else ValueError naming it."""
+    """``value`` as a finite float, ``|value| <= bound`` (``> 0`` when ``positive``), else ValueError naming it."""
     x = _finite_float(name, value, positive=positive)
     if abs(x) > bound:
         raise ValueError(f"{name} must be at most {bound:g} in magnitude, got {x!r}")

@@ -83,7 +83,8 @@ def _bounded(name: str, arr: np.ndarray, bound: float, unit: str) -> np.ndarray:
 def _direction(name: str, value: object) -> np.ndarray:
     """A finite non-zero 3-vector whose norm is finite too (``[1e200, 0, 0]`` normalised to 0, silently)."""
     v = as_vector(name, value, 3)
-    n = float(np.linalg.norm(v))
+    with np.errstate(over="ignore"):
+        n = float(np.linalg.norm(v))
     if not (1e-12 <= n < np.inf):
         raise ValueError(f"{name} must be a non-zero direction of finite length, got norm {n:.3g}")
     return v

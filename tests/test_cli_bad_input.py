@@ -677,3 +677,26 @@ def test_a_full_disk_while_writing_is_one_line_and_keeps_the_finished_frames(
     line = _one_error_line(capsys.readouterr().err)
     assert line == f"error: {out / 'estimates.csv'}: {os.strerror(errno.ENOSPC)}"
     assert read_result(out).frame.tolist() == [0, 1, 2]
+
+
+# --- third audit: empty paths and topics ----------------------------------------------------------------------
+
+@pytest.mark.parametrize(("argv", "flag"), [
+    (["validate", ""], "run"),                                    # validated the current directory
+    (["track", "RUN", "--out", "", "--overwrite"], "--out"),      # wrote the result into the current directory
+    (["export-bag", "RUN", "--out", "OUT", "--topic-tip", ""], "--topic-tip"),  # dropped the tips, exit 0
+])
+def test_an_empty_path_or_topic_is_a_usage_error(argv: list[str], flag: str, run: Path, tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """An unset shell variable (``pinpoint-fg track "$RUN" --out "$OUT"``) is an empty argument."""
+    here = tmp_path / "here"
+    shutil.copytree(run, here)
+    monkeypatch.chdir(here)
+    before = sorted(p.name for p in here.iterdir())
+    with pytest.raises(SystemExit) as exc:
+        main([str(run) if a == "RUN" else str(tmp_path / "x.bag") if a == "OUT" else a for a in argv])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert flag in line and "empty" in line
+    assert sorted(p.name for p in here.iterdir()) == before and not (tmp_path / "x.bag").exists()

@@ -155,7 +155,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from pinpoint_fg.eval.calibrate import calibrate_runs, format_table
     from pinpoint_fg.io.outdir import prepare_output_file
 
-    prepare_output_file(args.out, args.overwrite, "noise file")
+    prepare_output_file(args.out, args.overwrite, "noise file", inputs=args.runs)
     noise = calibrate_runs(args.runs)
     noise.save(args.out)
     print(format_table(noise))
@@ -181,7 +181,7 @@ def _cmd_calibrate_spread(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_file
     from pinpoint_fg.io.spread_scale import format_scale
 
-    prepare_output_file(args.out, args.overwrite, "spread scale")
+    prepare_output_file(args.out, args.overwrite, "spread scale", inputs=args.results)
     scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg))
     scale.save(args.out)
     print(format_scale(scale))

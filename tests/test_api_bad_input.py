@@ -176,6 +176,8 @@ def test_metrics_name_bad_arguments() -> None:
         nll_score(1.0, -1.0)
     with pytest.raises(InputError, match="alpha"):  # was TypeError of '<'
         interval_score(1.0, 0.0, 1.0, alpha="0.05")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="T_est"):  # a scaled rotation was an error of 0 rad
+        pose_errors(_scaled(3.0), T0)
     errors = pose_errors(T, T)
     with pytest.raises(InputError, match="mask"):  # every string read as True: all frames kept
         summarize_errors(errors, mask=np.array(["no", "no"]))

@@ -52,6 +52,20 @@ def _finite_rows(T: np.ndarray) -> np.ndarray:
     return np.all(np.isfinite(T), axis=(-2, -1))
 
 
+#: Largest accepted ``max |R^T R - I|`` of a finite pose given to :func:`pose_errors`.
+ROTATION_TOL = 1e-6
+
+
+def _check_rigid(name: str, T: np.ndarray) -> None:
+    """InputError naming ``name`` when a finite pose's rotation block is not a rotation: a scaled or zero block gave
+    a rotation error of 0 (the quaternion of a scaled identity is the identity's), silently."""
+    finite = _finite_rows(T)
+    R = T[..., :3, :3][finite]
+    if R.size and float(np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)))) > ROTATION_TOL:
+        raise InputError(f"{name} holds a pose whose rotation block is not a rotation (max |R^T R - I| > "
+                         f"{ROTATION_TOL:g})", column=name)
+
+
 # ----------------------------------------------------------------------------- pose errors
 
 
@@ -93,6 +107,8 @@ def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> PoseErrors:
         raise InputError(f"T_est {T_est.shape} and T_gt {T_gt.shape} hold different frame counts") from None
     T_est = np.broadcast_to(T_est, shape)
     T_gt = np.broadcast_to(T_gt, shape)
+    for name, T in (("T_est", T_est), ("T_gt", T_gt)):
+        _check_rigid(name, T)
     ok = _finite_rows(T_est) & _finite_rows(T_gt)
     eye = np.eye(4)
     T_est = np.where(ok[..., None, None], T_est, eye)

@@ -185,3 +185,26 @@ def test_metrics_name_bad_arguments() -> None:
         breakdown_by_label(np.ones(3), "abc")
     assert summarize_errors(errors, mask=np.array([True, False]))["frames"] == 1
     assert nll_score(1.0, 0.0) == nll_score(1.0, 1e-3)  # zero spread is still floored, not refused
+
+
+def test_every_factor_stays_finite_at_degenerate_poses() -> None:
+    """A guard (it passed before this audit too): behind the camera, edge-on, the tip in the camera plane, the
+    needle centre at the camera centre and a rotation of pi give a finite error and linearisation, never NaN."""
+    from factors.lie import se3_exp
+
+    in_plane = np.eye(4)
+    in_plane[:3, 3] = -NEEDLE.tip_m + [0.01, 0.0, 0.0]
+    poses = [se3_exp(np.r_[0, 0, 0, 0, 0, -0.05]), se3_exp(np.r_[np.pi / 2, 0, 0, 0, 0, 0.05]), in_plane,
+             np.eye(4), se3_exp(np.r_[np.pi, 0, 0, 0, 0, 0.05])]
+    factors = [KeypointFactor(0, CAM, NEEDLE.tip_m, [300, 200], S(2, 1)), ConicFactor(0, CAM, NEEDLE.radius_m, PTS,
+               S(10, 1)), *conic_pixel_factors(0, CAM, NEEDLE.radius_m, PTS, S(1, 1))[:2],
+               GraspPositionFactor(0, NEEDLE.grasp_m, [0, 0, 0.05], S(3, 1)),
+               GraspPerpendicularFactor(0, NEEDLE.grasp_tangent, [0, 0, 1], S(1, 1)), PosePriorFactor(0, T0, S(6, 1)),
+               MotionFactor(1, 0, np.eye(4), S(6, 1))]
+    for P in poses:
+        v = gtsam.Values()
+        v.insert(0, gtsam.Pose3(P))
+        v.insert(1, gtsam.Pose3(T0))
+        for f in factors:
+            A, b = f.linearize(v).jacobian()
+            assert np.isfinite(f.error(v)) and np.isfinite(A).all() and np.isfinite(b).all()

@@ -208,3 +208,17 @@ def test_every_factor_stays_finite_at_degenerate_poses() -> None:
         for f in factors:
             A, b = f.linearize(v).jacobian()
             assert np.isfinite(f.error(v)) and np.isfinite(A).all() and np.isfinite(b).all()
+
+
+def test_batched_residuals_refuse_a_degenerate_radius_or_direction() -> None:
+    """``factors.residuals`` called directly: a NaN radius and a zero tangent were NaN residuals, radius 0 a
+    degenerate conic (checked where the constants are built, so the trackers' hot path is unchanged)."""
+    from factors import residuals
+
+    for radius in (np.nan, 0.0, -1.0, 1e200):
+        with pytest.raises(ValueError, match="radius_m"):
+            residuals.conic_residual(T0, CAM.K, radius, PTS)
+    with pytest.raises(ValueError, match="direction"):
+        residuals.grasp_perpendicular_residual(T0, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="direction"):
+        residuals.grasp_perpendicular_residual(T0, [1.0, 0.0, 0.0], [np.inf, 0.0, 1.0])

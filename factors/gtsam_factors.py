@@ -64,6 +64,13 @@ def _check_key(name: str, key: object) -> int:
     return int(key)
 
 
+def _whole_index(name: str, value: object, count: int) -> int:
+    """``value`` as an index in ``[0, count)``, else ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= int(value) < count:
+        raise ValueError(f"{name} must be a whole number in [0, {count}), got {value!r}")
+    return int(value)
+
+
 def _number(name: str, value: object, bound: float, positive: bool = False) -> float:
     """``value`` as a finite float, ``|value| <= bound`` (``> 0`` when ``positive``), else ValueError naming it."""
     x = _finite_float(name, value, positive=positive)
@@ -253,6 +260,7 @@ class _ConicCache:
 
     def __init__(self, K: np.ndarray, radius_m: float, points_px: np.ndarray, bias: float) -> None:
         self._K, self._r, self._pts, self._b = K, radius_m, points_px, bias
+        self.count = int(points_px.shape[0])
         self._key: bytes | None = None
         self._rJ: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -269,7 +277,9 @@ class ConicPixelFactor(_UnaryPoseFactor):
     """The Sampson distance of ONE backbone pixel (1 px); see :func:`conic_pixel_factors`."""
 
     def __init__(self, key: int, cache: _ConicCache, index: int, noise: gtsam.noiseModel.Base) -> None:
-        i = int(index)
+        if not isinstance(cache, _ConicCache):
+            raise ValueError(f"cache must come from conic_pixel_factors, got {type(cache).__name__}")
+        i = _whole_index("index", index, cache.count)  # -1 or past the end read no row: "cannot reshape" per error()
 
         def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             r, J = cache(T[0])

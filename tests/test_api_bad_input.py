@@ -21,7 +21,7 @@ from factors import (
     PosePriorFactor,
 )
 from factors.geometry import NeedleModel
-from factors.gtsam_factors import conic_pixel_factors
+from factors.gtsam_factors import ConicPixelFactor, _ConicCache, conic_pixel_factors
 from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.eval.metrics import breakdown_by_label, interval_score, nll_score, pose_errors, summarize_errors
@@ -48,6 +48,10 @@ def _skewed_K() -> np.ndarray:
     K = CAM.K
     K[0, 1] = 50.0
     return K
+
+
+def _cache() -> _ConicCache:
+    return _ConicCache(CAM.K, NEEDLE.radius_m, PTS, 0.0)
 
 
 def _huge_point() -> np.ndarray:
@@ -92,6 +96,9 @@ FACTOR_CASES = {
     "bias a string": (lambda: ConicFactor(0, CAM, NEEDLE.radius_m, PTS, S(10, 1), bias="x"), "bias"),
     "measured a string": (lambda: KeypointFactor(0, CAM, NEEDLE.tip_m, "ab", S(2, 1)), "measured_px"),
     "robust k a string": (lambda: RobustLoss("huber", "abc"), "threshold k"),
+    # read no row: "cannot reshape array of size 0" at every error()
+    "pixel index -1": (lambda: ConicPixelFactor(0, _cache(), -1, S(1, 1)), "index"),
+    "pixel index past the end": (lambda: ConicPixelFactor(0, _cache(), 10, S(1, 1)), "index"),
     # gtsam.Rot3 keeps any 3x3: a scaled or zero rotation was a silently wrong error
     "prior scaled rotation": (lambda: PosePriorFactor(0, _scaled(2.0), S(6, 1)), "cam_T_mean"),
     "prior zero rotation": (lambda: PosePriorFactor(0, _scaled(0.0), S(6, 1)), "cam_T_mean"),

@@ -229,3 +229,32 @@ def test_batched_residuals_refuse_a_degenerate_radius_or_direction() -> None:
         residuals.grasp_perpendicular_residual(T0, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0])
     with pytest.raises(ValueError, match="direction"):
         residuals.grasp_perpendicular_residual(T0, [1.0, 0.0, 0.0], [np.inf, 0.0, 1.0])
+
+
+@pytest.mark.parametrize("fmt", ["ros2", "ros1"])
+@pytest.mark.parametrize(("role", "says"), [("tip", "outside the accepted"), ("grasper", "10 m")])
+def test_import_bag_checks_every_row_before_writing(fmt: str, role: str, says: str, tmp_path: Path) -> None:
+    """A tip at 1e308 px was imported (exit 0) into a run the reader refused; a grasper 100 km away stopped the
+    import at its frame and left the frames before it as a run that validated (half the bag, silently)."""
+    from pinpoint_fg.io.bag import BagTopics, import_bag
+    from tests.test_io_bag import T0 as STAMP0
+    from tests.test_io_bag import _camera_frames, _needle, _observations, _write_bag
+
+    frame2 = STAMP0 + 80_000_000
+
+    def build(w):
+        yield from _camera_frames(w)
+        yield from _observations(w, {0: 0})
+        if role == "tip":
+            yield "/needle/tip_px", w.point(w.header(frame2, "cam", 2), np.array([1e308, 2.0])), frame2
+        else:
+            far = np.eye(4)
+            far[0, 3] = 1e5
+            yield "/grasper/pose", w.pose(w.header(frame2, "cam", 2), far), frame2
+
+    bag = _write_bag(tmp_path / ("b.bag" if fmt == "ros1" else "b"), fmt, build)
+    with pytest.raises(InputError, match=says) as exc:
+        import_bag(bag, tmp_path / "run", _needle(tmp_path), topics=BagTopics(gt=None))
+    assert exc.value.file == str(bag) and exc.value.column == ("/needle/tip_px" if role == "tip" else "/grasper/pose")
+    assert "frame 2" in str(exc.value)
+    assert not (tmp_path / "run").exists()

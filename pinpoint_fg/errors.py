@@ -58,3 +58,13 @@ def path_argument(name: str, value: object) -> Path:
         shown = "an empty string" if isinstance(value, str) and value == "" else type(value).__name__
         raise InputError(f"{name} must be a path (a non-empty str or os.PathLike), got {shown}")
     return Path(value)
+
+
+def path_list(name: str, value: object) -> list:
+    """``value`` as a list, or :class:`InputError` naming ``name`` when it is one path (a ``str``, bytes or
+    ``os.PathLike``) where a list of paths is expected: a str was split into one "path" per character
+    (``calibrate_runs("RUN")``: "/: run given twice"), a Path was "'PosixPath' object is not iterable"."""
+    if isinstance(value, (str, bytes, os.PathLike)):
+        raise InputError(f"{name} must be a list of paths, got the single path {os.fsdecode(value)!r} "
+                         f"(write [{os.fsdecode(value)!r}])")
+    return list(value)  # type: ignore[call-overload]

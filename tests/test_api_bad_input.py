@@ -258,3 +258,23 @@ def test_import_bag_checks_every_row_before_writing(fmt: str, role: str, says: s
     assert exc.value.file == str(bag) and exc.value.column == ("/needle/tip_px" if role == "tip" else "/grasper/pose")
     assert "frame 2" in str(exc.value)
     assert not (tmp_path / "run").exists()
+
+
+def test_one_path_where_a_list_of_paths_is_expected_is_named(run: Path, tmp_path: Path) -> None:
+    """A str was split into one "path" per character ("/: run given twice", "/result.json: file not found"), a
+    Path was "'PosixPath' object is not iterable"."""
+    from pinpoint_fg.eval.calibrate import calibrate_runs
+    from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.eval.spread_calibration import fit_spread_scale
+    from pinpoint_fg.experiments.ablate import ablation_jobs
+    from pinpoint_fg.experiments.batch import run_batch
+    from pinpoint_fg.io.result.reader import expand_result_dirs
+
+    calls = [(lambda x: calibrate_runs(x), "runs"), (lambda x: ablation_jobs(x, tmp_path / "a"), "runs"),
+             (lambda x: run_batch(x, "map", tmp_path / "b"), "runs"), (lambda x: fit_spread_scale(x), "results"),
+             (lambda x: evaluate_results(x, out=tmp_path / "e"), "results"), (lambda x: expand_result_dirs(x), "paths")]
+    for one in (str(run), run):
+        for call, name in calls:
+            with pytest.raises(InputError, match=f"{name} must be a list of paths, got the single path"):
+                call(one)
+    assert not any(tmp_path.iterdir())

@@ -29,9 +29,17 @@ def _finite_float(name: str, value: object, positive: bool = False) -> float:
     return x
 
 
+def _float_array(name: str, value: object) -> np.ndarray:
+    """``np.asarray(value, dtype=float)``, or ValueError naming ``name`` (NumPy's says only "could not convert")."""
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be an array of numbers, got {value!r:.80}") from exc
+
+
 def as_points_px(name: str, points: object, dims: int = 2) -> np.ndarray:
     """Validate an ``(M, dims)`` finite float array (a single point ``(dims,)`` becomes ``(1, dims)``)."""
-    arr = np.asarray(points, dtype=float)
+    arr = _float_array(name, points)
     if arr.ndim == 1 and arr.shape[0] == dims:
         arr = arr[None, :]
     if arr.ndim != 2 or arr.shape[1] != dims:
@@ -43,7 +51,8 @@ def as_points_px(name: str, points: object, dims: int = 2) -> np.ndarray:
 
 def as_vector(name: str, value: object, dims: int) -> np.ndarray:
     """Validate a finite float vector of shape ``(dims,)``."""
-    arr = np.asarray(value, dtype=float).reshape(-1) if np.ndim(value) <= 1 else np.asarray(value, float)
+    arr = _float_array(name, value)
+    arr = arr.reshape(-1) if arr.ndim <= 1 else arr
     if arr.shape != (dims,):
         raise ValueError(f"{name} must have shape ({dims},), got {np.shape(value)}")
     if not np.all(np.isfinite(arr)):

@@ -19,42 +19,123 @@ import gtsam
 import numpy as np
 
 from factors import residuals as res
-from factors.geometry import PinholeCamera, as_points_px, as_vector
+from factors.geometry import PinholeCamera, _finite_float, as_points_px, as_vector
+
+#: Largest accepted |pixel coordinate| of a measurement or an intrinsic (``K``'s entries), pixels: beyond it the
+#: residuals' squares overflow (a backbone pixel at 1e200 made every error NaN, a keypoint at 1e308 inf).
+MAX_ABS_PX = 1e7
+#: Largest accepted |length| (needle points, radius, measured positions, pose translations), metres. An overflow
+#: guard, not a physical limit: a noise file's bias may reach 1e6 (``pinpoint_fg.noise.MAX_NOISE_ABS_MEAN``).
+MAX_ABS_M = 1e7
+#: Largest accepted deviation of a pose's rotation block from a rotation (``max |R^T R - I|``).
+ROTATION_TOL = 1e-6
 
 
-def _check_noise(noise: object, dim: int) -> gtsam.noiseModel.Base:
+def _whitening_problem(noise: gtsam.noiseModel.Base) -> str | None:
+    """Why GTSAM would whiten with inf/NaN (a zero or NaN sigma of a non-constrained model), or None.
+
+    ``Isotropic.Sigma(d, 0)`` and ``Gaussian.Covariance(zeros)`` are accepted by GTSAM with an infinite square-root
+    information: the factor's ``error()`` is then inf and its Jacobian inf/NaN, silently. A robust model is judged
+    by its base; ``Constrained`` models (GTSAM's hard constraints, zero sigmas by design) are left to GTSAM.
+    """
+    base = noise
+    while isinstance(base, gtsam.noiseModel.Robust):
+        base = base.noise()
+    if isinstance(base, gtsam.noiseModel.Gaussian) and not base.isConstrained() and not np.all(np.isfinite(base.R())):
+        return ("noise has a zero or NaN sigma (its square-root information is not finite); "
+                "use gtsam.noiseModel.Constrained for a hard constraint")
+    return None
+
+
+def _check_noise(noise: object, dim: int, sigmas: bool = True) -> gtsam.noiseModel.Base:
     if not isinstance(noise, gtsam.noiseModel.Base):
         raise ValueError(f"noise must be a gtsam noise model, got {type(noise).__name__}")
     if noise.dim() != dim:
         raise ValueError(f"noise has dimension {noise.dim()}, this factor's residual has {dim}")
+    problem = _whitening_problem(noise) if sigmas else None
+    if problem is not None:
+        raise ValueError(problem)
     return noise
 
 
 def _check_key(name: str, key: object) -> int:
-    if isinstance(key, bool) or not isinstance(key, (int, np.integer)):
-        raise ValueError(f"{name} must be an integer gtsam key, got {key!r}")
+    if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not 0 <= int(key) < 2**64:
+        raise ValueError(f"{name} must be an integer gtsam key in [0, 2^64), got {key!r}")
     return int(key)
+
+
+def _whole_index(name: str, value: object, count: int) -> int:
+    """``value`` as an index in ``[0, count)``, else ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= int(value) < count:
+        raise ValueError(f"{name} must be a whole number in [0, {count}), got {value!r}")
+    return int(value)
+
+
+def _number(name: str, value: object, bound: float, positive: bool = False) -> float:
+    """``value`` as a finite float, ``|value| <= bound`` (``> 0`` when ``positive``), else ValueError naming it."""
+    x = _finite_float(name, value, positive=positive)
+    if abs(x) > bound:
+        raise ValueError(f"{name} must be at most {bound:g} in magnitude, got {x!r}")
+    return x
+
+
+def _bounded(name: str, arr: np.ndarray, bound: float, unit: str) -> np.ndarray:
+    """``arr`` itself when every |entry| is at most ``bound`` (the unit named in the message), else ValueError."""
+    if arr.size and float(np.max(np.abs(arr))) > bound:
+        raise ValueError(f"{name} has an entry of magnitude {float(np.max(np.abs(arr))):.3g} {unit}, "
+                         f"more than the {bound:g} {unit} accepted")
+    return arr
+
+
+def _direction(name: str, value: object) -> np.ndarray:
+    """A finite non-zero 3-vector whose norm is finite too (``[1e200, 0, 0]`` normalised to 0, silently)."""
+    v = as_vector(name, value, 3)
+    with np.errstate(over="ignore"):
+        n = float(np.linalg.norm(v))
+    if not (1e-12 <= n < np.inf):
+        raise ValueError(f"{name} must be a non-zero direction of finite length, got norm {n:.3g}")
+    return v
 
 
 def _check_pose(name: str, pose: object) -> gtsam.Pose3:
     if isinstance(pose, gtsam.Pose3):
         m = pose.matrix()
     else:
-        m = np.asarray(pose, dtype=float)
+        try:
+            m = np.asarray(pose, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name} must be a gtsam.Pose3 or a (4, 4) matrix, got {pose!r}") from exc
         if m.shape != (4, 4):
             raise ValueError(f"{name} must be a gtsam.Pose3 or a (4, 4) matrix, got shape {m.shape}")
     if not np.all(np.isfinite(m)):
         raise ValueError(f"{name} contains NaN or infinite values")
-    return gtsam.Pose3(gtsam.Rot3(m[:3, :3]), gtsam.Point3(*m[:3, 3]))
+    R = m[:3, :3]
+    # gtsam.Rot3 keeps any 3x3 as given: a scaled, sheared or zero block was a silently wrong error value
+    if (not np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0]) or float(np.max(np.abs(R.T @ R - np.eye(3)))) > ROTATION_TOL
+            or np.linalg.det(R) <= 0):
+        raise ValueError(f"{name} is not a rigid transform (rotation block not a rotation within {ROTATION_TOL:g}, "
+                         "or last row not [0, 0, 0, 1])")
+    _bounded(f"{name}'s translation", m[:3, 3], MAX_ABS_M, "m")
+    return gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*m[:3, 3]))
 
 
 def _camera_K(camera: object) -> np.ndarray:
+    """The checked ``K`` of a camera: ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` with ``0 < fx, fy`` and every entry
+    within :data:`MAX_ABS_PX`. The keypoint residual reads ``fx, fy, cx, cy`` only: a skew, a ``K[2, 2] != 1`` or a
+    singular ``K`` (all zeros) gave a silently wrong error, and the conic factor a different one."""
     if isinstance(camera, PinholeCamera):
-        return camera.K
-    K = np.asarray(camera, dtype=float)
+        K = camera.K
+    else:
+        try:
+            K = np.asarray(camera, dtype=float)
+        except (TypeError, ValueError):
+            K = np.zeros(0)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
         raise ValueError("camera must be a PinholeCamera or a finite (3, 3) intrinsic matrix")
-    return K
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and K[0, 1] == 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
+        raise ValueError("camera K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 "
+                         f"(no skew; the keypoint residual assumes it), got {K.tolist()}")
+    return _bounded("camera K", K, MAX_ABS_PX, "px")
 
 
 def _reraise(exc: Exception) -> None:
@@ -107,10 +188,11 @@ class _UnaryPoseFactor(gtsam.CustomFactor):
         key: int,
         dim: int,
         fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+        sigmas: bool = True,
     ) -> None:
         self._fn = fn
         self._dim = dim
-        super().__init__(_check_noise(noise, dim), [_check_key("key", key)], _unary_callback(fn, dim))
+        super().__init__(_check_noise(noise, dim, sigmas), [_check_key("key", key)], _unary_callback(fn, dim))
 
     def residual(self, cam_T_needle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residual ``(dim,)`` and Jacobian ``(dim, 6)`` at a ``(4, 4)`` pose (no GTSAM involved)."""
@@ -132,8 +214,8 @@ class KeypointFactor(_UnaryPoseFactor):
         noise: gtsam.noiseModel.Base,
     ) -> None:
         K = _camera_K(camera)
-        X = as_vector("needle_point_m", needle_point_m, 3)
-        z = as_vector("measured_px", measured_px, 2)
+        X = _bounded("needle_point_m", as_vector("needle_point_m", needle_point_m, 3), MAX_ABS_M, "m")
+        z = _bounded("measured_px", as_vector("measured_px", measured_px, 2), MAX_ABS_PX, "px")
         super().__init__(noise, key, 2, lambda T: res.keypoint_residual(T, K, X, z))
 
 
@@ -141,15 +223,11 @@ def _conic_inputs(camera: object, radius_m: float, points_px: np.ndarray, bias: 
                   ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Checked ``(K, points_px (M, 2), radius_m, bias)`` of a conic factor (ValueError on bad input)."""
     K = _camera_K(camera)
-    pts = as_points_px("points_px", points_px)
+    pts = _bounded("points_px", as_points_px("points_px", points_px), MAX_ABS_PX, "px")
     if pts.shape[0] == 0:
         raise ValueError("points_px must hold at least one backbone pixel")
-    r_m = float(radius_m)
-    if not np.isfinite(r_m) or r_m <= 0:
-        raise ValueError(f"radius_m must be a positive finite number, got {radius_m!r}")
-    b = float(bias)
-    if not np.isfinite(b):
-        raise ValueError("bias must be finite")
+    r_m = _number("radius_m", radius_m, MAX_ABS_M, positive=True)
+    b = _number("bias", bias, MAX_ABS_PX)
     return K, pts, r_m, b
 
 
@@ -182,6 +260,7 @@ class _ConicCache:
 
     def __init__(self, K: np.ndarray, radius_m: float, points_px: np.ndarray, bias: float) -> None:
         self._K, self._r, self._pts, self._b = K, radius_m, points_px, bias
+        self.count = int(points_px.shape[0])
         self._key: bytes | None = None
         self._rJ: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -198,13 +277,16 @@ class ConicPixelFactor(_UnaryPoseFactor):
     """The Sampson distance of ONE backbone pixel (1 px); see :func:`conic_pixel_factors`."""
 
     def __init__(self, key: int, cache: _ConicCache, index: int, noise: gtsam.noiseModel.Base) -> None:
-        i = int(index)
+        if not isinstance(cache, _ConicCache):
+            raise ValueError(f"cache must come from conic_pixel_factors, got {type(cache).__name__}")
+        i = _whole_index("index", index, cache.count)  # -1 or past the end read no row: "cannot reshape" per error()
 
         def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             r, J = cache(T[0])
             return r[i : i + 1], J[i : i + 1]
 
-        super().__init__(noise, key, 1, fn)
+        # the sigmas were checked once by conic_pixel_factors (one noise model shared by every pixel)
+        super().__init__(noise, key, 1, fn, sigmas=False)
 
 
 def conic_pixel_factors(
@@ -235,8 +317,8 @@ class GraspPositionFactor(_UnaryPoseFactor):
     def __init__(
         self, key: int, needle_point_m: np.ndarray, measured_cam_m: np.ndarray, noise: gtsam.noiseModel.Base
     ) -> None:
-        X = as_vector("needle_point_m", needle_point_m, 3)
-        p = as_vector("measured_cam_m", measured_cam_m, 3)
+        X = _bounded("needle_point_m", as_vector("needle_point_m", needle_point_m, 3), MAX_ABS_M, "m")
+        p = _bounded("measured_cam_m", as_vector("measured_cam_m", measured_cam_m, 3), MAX_ABS_M, "m")
         super().__init__(noise, key, 3, lambda T: res.grasp_position_residual(T, X, p))
 
 
@@ -254,14 +336,9 @@ class GraspPerpendicularFactor(_UnaryPoseFactor):
         noise: gtsam.noiseModel.Base,
         bias: float = 0.0,
     ) -> None:
-        t = as_vector("needle_tangent", needle_tangent, 3)
-        z = as_vector("grasper_axis_cam", grasper_axis_cam, 3)
-        for name, v in (("needle_tangent", t), ("grasper_axis_cam", z)):
-            if np.linalg.norm(v) < 1e-12:
-                raise ValueError(f"{name} must be a non-zero direction")
-        b = float(bias)
-        if not np.isfinite(b):
-            raise ValueError("bias must be finite")
+        t = _direction("needle_tangent", needle_tangent)
+        z = _direction("grasper_axis_cam", grasper_axis_cam)
+        b = _number("bias", bias, MAX_ABS_PX)
 
         def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             r, J = res.grasp_perpendicular_residual(T, t, z)

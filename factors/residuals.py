@@ -67,13 +67,21 @@ def _unit_const(x: np.ndarray, last_axis: bool = False) -> np.ndarray:
     differently from the whole-array one: each form is kept where it was used, bit for bit).
     """
     x = np.asarray(x, dtype=float)
-    return _frozen(_UNIT_CONST, x.tobytes() + (b"a" if last_axis else b""),
-                   lambda: x / (np.linalg.norm(x, axis=-1, keepdims=True) if last_axis else np.linalg.norm(x)))
+
+    def make() -> np.ndarray:
+        n = np.linalg.norm(x, axis=-1, keepdims=True) if last_axis else np.linalg.norm(x)
+        if not (np.all(np.isfinite(n)) and np.all(n > 0)):  # checked once per value (memo): was NaN residuals
+            raise ValueError(f"a direction must be non-zero and finite, got {x.tolist()}")
+        return x / n
+
+    return _frozen(_UNIT_CONST, x.tobytes() + (b"a" if last_axis else b""), make)
 
 
 def _conic_q(radius_m: float) -> np.ndarray:
     """``Q = diag(1, 1, -r^2)`` of :func:`conic_residual`, built once per radius (read-only; bounded memo)."""
     r = float(radius_m)
+    if not 0.0 < r < 1e150:  # NaN read NaN residuals, 0 a degenerate conic, 1e200 an OverflowError of r ** 2
+        raise ValueError(f"radius_m must be a positive finite number, got {radius_m!r}")
     return _frozen(_CONIC_Q, r, lambda: np.diag([1.0, 1.0, -(r ** 2)]), bound=64)
 
 

@@ -56,7 +56,10 @@ class RobustLoss:
     def __post_init__(self) -> None:
         if self.kind not in LOSS_KINDS:
             raise ValueError(f"unknown robust loss {self.kind!r}; choose from {', '.join(LOSS_KINDS)}")
-        k = float(self.k)
+        try:
+            k = float(self.k)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"robust threshold k must be a number, got {self.k!r}") from exc
         if not (np.isfinite(k) and 0 < k <= MAX_K):
             raise ValueError(f"robust threshold k must be a positive finite number <= {MAX_K:g}, got {self.k!r}")
         object.__setattr__(self, "k", k)

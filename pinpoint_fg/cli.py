@@ -41,6 +41,14 @@ def _robust_spec(text: str) -> dict:
         raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
+def _path(text: str) -> Path:
+    """An argparse type: a non-empty path. ``Path("")`` is the current directory, so an unset shell variable
+    (``pinpoint-fg validate "$RUN"``) validated, tracked or overwrote whatever directory the user stood in."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path (an unset shell variable?)")
+    return Path(text)
+
+
 #: Largest accepted seed: the seed is recorded in the output's JSON, whose readers accept int64 integers only.
 MAX_SEED = 2**63 - 1
 
@@ -147,7 +155,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from pinpoint_fg.eval.calibrate import calibrate_runs, format_table
     from pinpoint_fg.io.outdir import prepare_output_file
 
-    prepare_output_file(args.out, args.overwrite, "noise file")
+    prepare_output_file(args.out, args.overwrite, "noise file", inputs=args.runs)
     noise = calibrate_runs(args.runs)
     noise.save(args.out)
     print(format_table(noise))
@@ -173,7 +181,7 @@ def _cmd_calibrate_spread(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_file
     from pinpoint_fg.io.spread_scale import format_scale
 
-    prepare_output_file(args.out, args.overwrite, "spread scale")
+    prepare_output_file(args.out, args.overwrite, "spread scale", inputs=args.results)
     scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg))
     scale.save(args.out)
     print(format_scale(scale))
@@ -235,7 +243,9 @@ BAG_ROLES = ("camera-info", "mask", "tip", "tail", "grasper", "gt")
 
 
 def _bag_topic(text: str) -> str | None:
-    return None if text.strip().lower() in ("", "none") else text.strip()
+    if not text.strip():  # was read as 'none': an unset shell variable dropped the role's data, exit 0
+        raise argparse.ArgumentTypeError("an empty topic name; write 'none' to skip this role")
+    return None if text.strip().lower() == "none" else text.strip()
 
 
 def _bag_topics(args: argparse.Namespace):
@@ -462,6 +472,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     _add_bag_parsers(sub)
     _add_batch_parser(sub)
+    for command in sub.choices.values():  # every ``type=Path`` argument parses through _path
+        command.register("type", Path, _path)
     return p
 
 

@@ -49,3 +49,22 @@ def refuse_repeated(paths: Sequence[str | Path], what: str) -> None:
         if key in seen:
             raise InputError(f"{what} given twice (also as {seen[key]})", file=p)
         seen[key] = Path(p)
+
+
+def path_argument(name: str, value: object) -> Path:
+    """``value`` as a Path, or :class:`InputError` naming the argument ``name``: ``None``, a number or bytes was
+    pathlib's "expected str, bytes or os.PathLike object" TypeError, and ``""`` read the current directory."""
+    if not isinstance(value, (str, os.PathLike)) or os.fspath(value) in ("", b""):
+        shown = "an empty string" if isinstance(value, str) and value == "" else type(value).__name__
+        raise InputError(f"{name} must be a path (a non-empty str or os.PathLike), got {shown}")
+    return Path(value)
+
+
+def path_list(name: str, value: object) -> list:
+    """``value`` as a list, or :class:`InputError` naming ``name`` when it is one path (a ``str``, bytes or
+    ``os.PathLike``) where a list of paths is expected: a str was split into one "path" per character
+    (``calibrate_runs("RUN")``: "/: run given twice"), a Path was "'PosixPath' object is not iterable"."""
+    if isinstance(value, (str, bytes, os.PathLike)):
+        raise InputError(f"{name} must be a list of paths, got the single path {os.fsdecode(value)!r} "
+                         f"(write [{os.fsdecode(value)!r}])")
+    return list(value)  # type: ignore[call-overload]

@@ -16,10 +16,11 @@ from contextlib import AbstractContextManager, nullcontext
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from factors.robust import RobustLoss
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
@@ -36,6 +37,24 @@ METHODS = ("svn", "svgd", "pf", "map", "mht")
 DEFAULT_PARTICLES = {"svn": 50, "svgd": 50, "pf": 3000, "map": 1, "mht": 4}
 #: Methods whose particles carry weights (particles.npz has ``weight``).
 WEIGHTED_METHODS = ("pf", "mht")
+#: Largest accepted seed: result.json records it, and its reader takes int64 (2**64 wrote an unreadable result).
+MAX_SEED = 2**63 - 1
+
+
+def _whole(name: str, value: object, low: int, high: int = MAX_SEED) -> int:
+    """``value`` as an int in ``[low, high]``, else ValueError naming it: a float is refused, not truncated
+    (``particles=10.5`` tracked with 10), and NumPy's "expected non-negative integer" named no argument."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= int(value) <= high:
+        where = f"in [{low}, {high}]" if name == "seed" else f">= {low}"
+        raise ValueError(f"{name} must be a whole number {where}, got {value!r}")
+    return int(value)
+
+
+def _disabled(disable: object) -> tuple[str, ...]:
+    """``disable`` as a tuple of switch names; a single string was split into its letters (``"tip"``: t, i, p)."""
+    if isinstance(disable, str):
+        raise ValueError(f"disable must be a list of switch names, got the string {disable!r} (write [{disable!r}])")
+    return tuple(disable)  # type: ignore[arg-type]
 
 
 def make_tracker(method: str, config: TrackerConfig) -> Tracker:
@@ -69,14 +88,12 @@ def tracker_config(recording: Recording, method: str, particles: int | None = No
     """A TrackerConfig for a recording (camera, needle) with the method's default particle count."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    n = DEFAULT_PARTICLES[method] if particles is None else int(particles)
-    if n < 1:
-        raise ValueError(f"particles must be >= 1, got {n}")
-    if int(window) < 1:
-        raise ValueError(f"window must be >= 1, got {window}")
+    n = DEFAULT_PARTICLES[method] if particles is None else _whole("particles", particles, 1)
+    window = _whole("window", window, 1)
+    seed = _whole("seed", seed, 0)
     return TrackerConfig(
         camera=recording.info.camera, needle=recording.info.needle, noise=noise or NoiseConfig(),
-        switches=Switches.from_disabled(tuple(disable)), particles=n, window=int(window), seed=int(seed),
+        switches=Switches.from_disabled(_disabled(disable)), particles=n, window=window, seed=seed,
     )
 
 
@@ -145,6 +162,15 @@ def track_recording(
     ``benchmark`` use with ``--jobs`` > 1) on any core count; a threaded BLAS rounds some sums
     differently (SVN's poses moved by <= 1.2e-15 m over a 150-frame run; PF, MAP, MHT unchanged).
     """
+    # the arguments first: a refused one leaves no output directory behind
+    path_argument("run", run)
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    for name, value, low in (("particles", particles, 1), ("window", window, 1), ("seed", seed, 0),
+                             ("max_frames", max_frames, 1), ("blas_threads", blas_threads, 1)):
+        if value is not None or name in ("window", "seed"):
+            _whole(name, value, low)  # max_frames=-1 tracked all frames but the last (a slice), silently
+    _disabled(disable)
     out = prepare_output_dir(out, overwrite, "result")
     scale = None
     if spread_scale is not None:

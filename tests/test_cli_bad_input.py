@@ -677,3 +677,45 @@ def test_a_full_disk_while_writing_is_one_line_and_keeps_the_finished_frames(
     line = _one_error_line(capsys.readouterr().err)
     assert line == f"error: {out / 'estimates.csv'}: {os.strerror(errno.ENOSPC)}"
     assert read_result(out).frame.tolist() == [0, 1, 2]
+
+
+# --- third audit: empty paths and topics ----------------------------------------------------------------------
+
+@pytest.mark.parametrize(("argv", "flag"), [
+    (["validate", ""], "run"),                                    # validated the current directory
+    (["track", "RUN", "--out", "", "--overwrite"], "--out"),      # wrote the result into the current directory
+    (["export-bag", "RUN", "--out", "OUT", "--topic-tip", ""], "--topic-tip"),  # dropped the tips, exit 0
+])
+def test_an_empty_path_or_topic_is_a_usage_error(argv: list[str], flag: str, run: Path, tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """An unset shell variable (``pinpoint-fg track "$RUN" --out "$OUT"``) is an empty argument."""
+    here = tmp_path / "here"
+    shutil.copytree(run, here)
+    monkeypatch.chdir(here)
+    before = sorted(p.name for p in here.iterdir())
+    with pytest.raises(SystemExit) as exc:
+        main([str(run) if a == "RUN" else str(tmp_path / "x.bag") if a == "OUT" else a for a in argv])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert flag in line and "empty" in line
+    assert sorted(p.name for p in here.iterdir()) == before and not (tmp_path / "x.bag").exists()
+
+
+@pytest.mark.parametrize(("command", "name"), [("calibrate-spread", "result.json"), ("calibrate-spread", "modes.csv"),
+                                               ("calibrate", "frames.csv"), ("calibrate", "masks/000001.png")])
+def test_out_naming_a_file_of_the_input_is_refused(command: str, name: str, run: Path, map_result: Path,
+                                                   tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, with --overwrite: exit 0 and the input's own file replaced by the JSON written (the result or run
+    unreadable afterwards); without it, the refusal advised --overwrite."""
+    source = tmp_path / "in"
+    shutil.copytree(map_result if command == "calibrate-spread" else run, source)
+    target = source / name
+    before = target.read_bytes() if target.exists() else None
+    for overwrite in ([], ["--overwrite"]):
+        assert main([command, str(source), "--out", str(target), *overwrite]) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert str(target) in line and "file of the input" in line
+    assert (target.read_bytes() if target.exists() else None) == before
+    # a file of another name beside the input's files is still fine
+    assert main([command, str(source), "--out", str(source / "fitted.json")]) == 0

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from factors import residuals as res
-from pinpoint_fg.errors import InputError, refuse_repeated
+from pinpoint_fg.errors import InputError, path_list, refuse_repeated
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import FrameRecord, Recording
 from pinpoint_fg.noise import RESIDUAL_DIMS, NoiseConfig, ResidualNoise
@@ -136,7 +136,7 @@ def calibrate_runs(runs: list[Path]) -> NoiseConfig:
 
     Raises :class:`InputError` naming the run when a run cannot be read or has no ground truth, or is given twice.
     """
-    runs = [Path(r) for r in runs]
+    runs = [Path(r) for r in path_list("runs", runs)]
     if not runs:
         raise InputError("calibration needs at least one recorded run")
     refuse_repeated(runs, "run")  # was counted twice: other statistics, a type's default replaced (count)

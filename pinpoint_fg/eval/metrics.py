@@ -52,6 +52,20 @@ def _finite_rows(T: np.ndarray) -> np.ndarray:
     return np.all(np.isfinite(T), axis=(-2, -1))
 
 
+#: Largest accepted ``max |R^T R - I|`` of a finite pose given to :func:`pose_errors`.
+ROTATION_TOL = 1e-6
+
+
+def _check_rigid(name: str, T: np.ndarray) -> None:
+    """InputError naming ``name`` when a finite pose's rotation block is not a rotation: a scaled or zero block gave
+    a rotation error of 0 (the quaternion of a scaled identity is the identity's), silently."""
+    finite = _finite_rows(T)
+    R = T[..., :3, :3][finite]
+    if R.size and float(np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)))) > ROTATION_TOL:
+        raise InputError(f"{name} holds a pose whose rotation block is not a rotation (max |R^T R - I| > "
+                         f"{ROTATION_TOL:g})", column=name)
+
+
 # ----------------------------------------------------------------------------- pose errors
 
 
@@ -93,6 +107,8 @@ def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> PoseErrors:
         raise InputError(f"T_est {T_est.shape} and T_gt {T_gt.shape} hold different frame counts") from None
     T_est = np.broadcast_to(T_est, shape)
     T_gt = np.broadcast_to(T_gt, shape)
+    for name, T in (("T_est", T_est), ("T_gt", T_gt)):
+        _check_rigid(name, T)
     ok = _finite_rows(T_est) & _finite_rows(T_gt)
     eye = np.eye(4)
     T_est = np.where(ok[..., None, None], T_est, eye)
@@ -130,7 +146,10 @@ def nll_score(err: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     with zero spread scores finitely (and very badly unless ``err`` is ~0 as well).
     """
     err = np.asarray(err, dtype=float)
-    sigma = np.maximum(np.asarray(sigma, dtype=float), SIGMA_FLOOR)
+    sigma = np.asarray(sigma, dtype=float)
+    if np.any(sigma < 0):  # was floored to SIGMA_FLOOR like a zero spread: a silently "very confident" score
+        raise InputError("nll_score: sigma must not be negative", column="sigma")
+    sigma = np.maximum(sigma, SIGMA_FLOOR)
     return 0.5 * np.log(2.0 * np.pi * sigma**2) + err**2 / (2.0 * sigma**2)
 
 
@@ -140,8 +159,8 @@ def interval_score(err: np.ndarray, low: np.ndarray, upp: np.ndarray, alpha: flo
     ``IS = (upp - low) + 2/alpha · max(0, low - err) + 2/alpha · max(0, err - upp)``, element-wise.
     For an error magnitude with predicted 95th percentile ``q95`` the interval is ``[0, q95]``.
     """
-    if not (0.0 < alpha < 1.0):
-        raise InputError(f"alpha must lie in (0, 1), got {alpha}", column="alpha")
+    if not (isinstance(alpha, (int, float, np.number)) and 0.0 < alpha < 1.0):  # a str was a TypeError of '<'
+        raise InputError(f"alpha must lie in (0, 1), got {alpha!r}", column="alpha")
     err = np.asarray(err, dtype=float)
     low = np.asarray(low, dtype=float)
     upp = np.asarray(upp, dtype=float)
@@ -201,6 +220,8 @@ def summarize_errors(
         m = np.asarray(mask)
         if m.shape != (F,):
             raise InputError(f"mask has shape {m.shape}, expected ({F},)", column="mask")
+        if m.dtype != bool:  # strings (or any non-empty value) read as True: every frame kept, silently
+            raise InputError(f"mask must be boolean, got dtype {m.dtype}", column="mask")
         use &= m.astype(bool)
 
     out: dict[str, float] = {"frames": int(use.sum())}
@@ -251,6 +272,8 @@ def breakdown_by_label(
     are absent.
     """
     v = np.asarray(values, dtype=float).reshape(-1)
+    if isinstance(labels, str) or labels is None:  # a string was split into one label per character
+        raise InputError(f"labels must be a list of labels, got {type(labels).__name__}", column="labels")
     lab = list(labels)
     if len(lab) != v.shape[0]:
         raise InputError(f"{len(lab)} labels for {v.shape[0]} values", column="labels")

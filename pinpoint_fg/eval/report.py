@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_list
 from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
@@ -714,7 +714,7 @@ def evaluate_results(
     refused with ``spread_scale`` (no double scaling); without it, its recorded factors fill those columns
     (and the raw coverage is that of ``q95 / kappa``).
     """
-    results = expand_result_dirs(results)
+    results = expand_result_dirs(path_list("results", results))
     if not results:
         raise InputError("no results to evaluate")
     out = Path(out)

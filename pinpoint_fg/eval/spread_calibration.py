@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_list
 from pinpoint_fg.eval.metrics import pose_errors
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
@@ -149,7 +149,7 @@ def fit_spread_scale(results: list[str | Path], level: float = LEVEL,
     if not 0.0 < mode_gate_rad <= math.pi:
         raise InputError(f"the mode gate must lie in (0, 180] degrees, got {math.degrees(mode_gate_rad):g}",
                          column="mode_gate")
-    dirs = expand_result_dirs(results)
+    dirs = expand_result_dirs(path_list("results", results))
     if not dirs:
         raise InputError("no results to fit the spread scale on")
     cache: dict[Path, Recording] = {}

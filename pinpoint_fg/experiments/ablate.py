@@ -27,7 +27,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from pinpoint_fg.errors import InputError, refuse_repeated
+from pinpoint_fg.errors import InputError, path_list, refuse_repeated
 from pinpoint_fg.eval.report import ABLATION_VARIANTS, evaluate_results
 from pinpoint_fg.experiments.jobs import interruptible_pool
 from pinpoint_fg.io.outdir import prepare_output_dir
@@ -82,6 +82,7 @@ def ablation_jobs(
     ``-2``, ``-3``, ... appended.
     Raises :class:`InputError` when a run cannot be read or is given twice.
     """
+    runs = path_list("runs", runs)
     if not runs:
         raise InputError("ablate needs at least one recorded run")
     refuse_repeated(runs, "run")  # was tracked twice and weighed double in Table III

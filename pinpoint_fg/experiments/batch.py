@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pinpoint_fg.errors import InputError, refuse_repeated
+from pinpoint_fg.errors import InputError, path_list, refuse_repeated
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.noise import NoiseConfig
@@ -104,6 +104,7 @@ def _track_task(run: str, out: str, method: str, options: dict[str, Any]) -> tup
 def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: int,
              options: dict[str, Any]) -> tuple[list[Path], dict[str, Any]]:
     """Validate everything that can be checked before a cluster starts; absolute paths for the workers."""
+    runs = path_list("runs", runs)
     if not runs:
         raise InputError("no runs given")
     if method not in METHODS:

@@ -89,7 +89,7 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import QUAT_NORM_TOL, FrameRecord, Recording, RecordingInfo
-from pinpoint_fg.io.recording.writer import RecordingWriter
+from pinpoint_fg.io.recording.writer import RecordingWriter, frame_cells
 
 #: recording.json key holding what a bag import knows beyond the format (time origin, frame id).
 ROS_BAG_KEY = "ros_bag"
@@ -506,15 +506,25 @@ def import_bag(
         return None if idx is None or idx[k] < 0 else data[role].values[idx[k]]
 
     n_pixels = cam["width"] * cam["height"]
+    records = []
+    for k, ns in enumerate(frame_ns):
+        grasper, gt = pick("grasper", k), pick("gt", k)
+        rec = FrameRecord(
+            frame=k, t_s=(int(ns) - origin) / _NS_PER_S, tip_px=pick("tip", k), tail_px=pick("tail", k),
+            cam_T_grasper=None if grasper is None else grasper[0],
+            cam_T_needle_gt=None if gt is None else gt[0],
+        )
+        try:  # every row as the reader will check it, before the first file (was: a run cut at the bad frame)
+            frame_cells(rec, cam["width"], cam["height"])
+        except InputError as exc:
+            role = str(exc.column).split("_")[0]  # tip_u_px -> tip, grasper_x_m -> grasper, gt_x_m -> gt
+            raise InputError(f"{exc.reason} ({exc.column})", file=bag,
+                             column=data[role].topic if role in data else exc.column) from None
+        records.append(rec)
     prepare_output_dir(out, overwrite, "run")
     with RecordingWriter(out, info) as writer:
-        for k, ns in enumerate(frame_ns):
-            grasper, gt, mask = pick("grasper", k), pick("gt", k), pick("mask", k)
-            rec = FrameRecord(
-                frame=k, t_s=(int(ns) - origin) / _NS_PER_S, tip_px=pick("tip", k), tail_px=pick("tail", k),
-                cam_T_grasper=None if grasper is None else grasper[0],
-                cam_T_needle_gt=None if gt is None else gt[0],
-            )
+        for k, rec in enumerate(records):
+            mask = pick("mask", k)
             mask_arr = None
             if mask is not None:
                 mask_arr = np.unpackbits(mask[0], count=n_pixels).reshape(cam["height"], cam["width"])

@@ -21,6 +21,7 @@ on the command line). The directory is created (with its parents) when the check
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 from pinpoint_fg.errors import InputError
@@ -120,13 +121,39 @@ def prepare_output_dir(path: str | os.PathLike, overwrite: bool, what: str) -> P
     return p
 
 
-def prepare_output_file(path: str | os.PathLike, overwrite: bool, what: str) -> Path:
+#: Files a run or a result consists of, and the directories of a run's PNGs: an output file there replaced (with
+#: ``--overwrite``) or added to the command's own input (``calibrate-spread RES --out RES/result.json``, exit 0).
+_INPUT_FILE_NAMES = frozenset({"recording.json", "frames.csv", "result.json", "estimates.csv", "particles.npz",
+                               "particles.journal", "trajectory.tum", "smoothed.csv", "modes.csv"})
+_INPUT_FILE_DIRS = frozenset({"masks", "images"})
+
+
+def _input_file(p: Path, inputs: Sequence[str | os.PathLike]) -> Path | None:
+    """The input directory of which ``p`` would be (or replace) one of the files it consists of, or None."""
+    real = Path(os.path.realpath(p))
+    for root in inputs:
+        base = Path(os.path.realpath(root))
+        if base in real.parents:
+            inner = real.relative_to(base).parts
+            if real.name in _INPUT_FILE_NAMES or _INPUT_FILE_DIRS.intersection(inner[:-1]):
+                return Path(root)
+    return None
+
+
+def prepare_output_file(path: str | os.PathLike, overwrite: bool, what: str,
+                        inputs: Sequence[str | os.PathLike] = ()) -> Path:
     """Check that the file ``path`` may receive ``what``; create its parent directory; return it.
 
     Refuses an existing file without ``overwrite``, a directory in its place, a parent that is a
     file, and paths the OS refuses (:class:`InputError`). The file itself is not created.
+    ``inputs``: the command's input directories (runs, results); a ``path`` that is one of their files
+    (``recording.json``, ``result.json``, a mask, ...) is refused, with or without ``overwrite``.
     """
     p = _usable(path, what)
+    owner = _input_file(p, inputs)
+    if owner is not None:
+        raise InputError(f"--out is a file of the input {owner}; writing the {what} there would replace or corrupt "
+                         "that input: choose another --out", file=p)
     try:
         if p.is_dir():
             raise InputError(f"--out is a directory; name a file for the {what}", file=p)

@@ -138,6 +138,8 @@ def _tangent_vectors(T_ref: np.ndarray, particles_T: np.ndarray, weights: np.nda
         raise InputError(mismatch, column="T_ref") from None
     if batch != P.shape[:-3]:
         raise InputError(mismatch, column="T_ref")
+    if P.shape[-3] == 0:  # was ZeroDivisionError from the uniform weights
+        raise InputError(f"particles_T holds no particles (shape {P.shape})", column="particles_T")
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(T_ref))):
         raise InputError("tangent_spread: poses must be finite", column="particles_T")
     w = _weights(weights, P.shape[:-2])

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.jsonfile import load_json
 from pinpoint_fg.io.recording.png import image_file_problem
 from pinpoint_fg.io.recording.schema import (
@@ -452,8 +452,11 @@ def validate_run(path: str | Path, inflate: bool = True) -> tuple[Recording | No
     which runs the full check first: a file whose data is corrupt under valid CRCs is then reported, located,
     when its frame is decoded rather than here.
     """
-    root = Path(path)
     errors: list[InputError] = []
+    try:
+        root = path_argument("run", path)
+    except InputError as exc:
+        return None, [exc]
     try:
         is_dir = root.is_dir()
     except (OSError, ValueError) as exc:

@@ -38,7 +38,7 @@ from pinpoint_fg.io.recording.schema import (
     path_problem,
     shown,
 )
-from pinpoint_fg.io.recording.validator import _parse_info
+from pinpoint_fg.io.recording.validator import _cell_bounds, _parse_info
 
 
 def _num_cell(x: float) -> str:
@@ -73,6 +73,19 @@ def _pose_cells(T: np.ndarray) -> list[str]:
     """``x y z qw qx qy qz`` cells of a pose (quaternion with w >= 0)."""
     xyz, q = xyz_quat_from_pose(T)
     return [_num_cell(v) for v in xyz] + [_num_cell(v) for v in q]
+
+
+def frame_cells(rec: FrameRecord, width: int | None, height: int | None) -> dict[str, str]:
+    """The frames.csv cells of ``rec``, checked as the reader will check them (``ValueError``/:class:`InputError`
+    naming the column): a keypoint outside the image's accepted range (``import-bag`` of a tip at 1e308 px) was
+    written, exit 0, into a run the reader then refused."""
+    cells = _row_cells(rec)
+    for column, cell in cells.items():
+        bounds = _cell_bounds(column, width, height) if cell else None
+        if bounds is not None and not bounds[0] <= float(cell) <= bounds[1]:
+            raise InputError(f"frame {rec.frame}: {float(cell):g} is outside the accepted {bounds[0]:g} .. "
+                             f"{bounds[1]:g}", column=column)
+    return cells
 
 
 def _row_cells(rec: FrameRecord) -> dict[str, str]:
@@ -235,7 +248,7 @@ class RecordingWriter:
             raise ValueError(f"frame {frame.frame} is not greater than the previous frame {self._last_frame}")
         width, height = int(self.info.camera.width), int(self.info.camera.height)
         try:
-            cells = _row_cells(frame)  # validate before writing any file
+            cells = frame_cells(frame, width, height)  # validate before writing any file
         except InputError as exc:
             raise InputError(exc.reason, file=self.run_dir / FRAMES_CSV, column=exc.column) from None
         todo = (("mask", mask, _mask_to_png_array), ("image", image, _image_to_png_array))

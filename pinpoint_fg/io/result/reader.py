@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from factors.geometry import pose_from_xyz_quat
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument, path_list
 from pinpoint_fg.io.jsonfile import load_json
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, Recording, json_shown, shown
@@ -176,7 +176,7 @@ def expand_result_dirs(paths: Iterable[str | Path]) -> list[Path]:
     :func:`read_result` reports it. Order is kept and duplicates are dropped.
     """
     out: list[Path] = []
-    for p in map(Path, paths):
+    for p in map(Path, path_list("paths", paths)):
         if p.is_dir() and not (p / RESULT_JSON).exists():
             subs = sorted(d for d in p.iterdir() if d.is_dir() and (d / RESULT_JSON).is_file())
             out.extend(subs or [p])
@@ -198,7 +198,7 @@ def read_result(out_dir: str | Path) -> Result:
     Works on a result whose writer never closed (crash): every frame whose estimates row was
     written is returned (particles from the journal when it is ahead of particles.npz).
     """
-    root = Path(out_dir)
+    root = path_argument("out_dir", out_dir)
     try:
         is_dir = root.is_dir()
     except (OSError, ValueError) as exc:

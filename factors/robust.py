@@ -67,6 +67,8 @@ class RobustLoss:
     @classmethod
     def parse(cls, text: str) -> RobustLoss:
         """``none``, ``huber``, ``huber:1.345``, ``cauchy:2`` (default k: 1.345 Huber, 1.0 Cauchy)."""
+        if not isinstance(text, str):  # None or a number was an AttributeError naming nothing
+            raise ValueError(f"a robust loss is a string such as 'huber:1.345' or 'none', got {text!r}")
         kind, _, k = text.strip().partition(":")
         kind = kind.strip().lower()
         if not k.strip():

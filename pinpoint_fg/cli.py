@@ -280,7 +280,11 @@ def _cmd_import_bag(args: argparse.Namespace) -> int:
 def _cmd_export_bag(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.bag import export_bag
 
-    out = export_bag(args.run, args.out, fmt=args.format, storage=args.storage, topics=_bag_topics(args))
+    if args.format == "ros1" and args.storage is not None:  # was ignored: a ROS 1 bag has one storage format
+        raise InputError("--storage is a ROS 2 option (sqlite3 or mcap); a ROS 1 bag has one format",
+                         column="--storage")
+    out = export_bag(args.run, args.out, fmt=args.format, storage=args.storage or "sqlite3",
+                     topics=_bag_topics(args))
     print(f"wrote {out}")
     return 0
 
@@ -305,7 +309,8 @@ def _add_bag_parsers(sub: argparse._SubParsersAction) -> None:
     s.add_argument("run", type=Path)
     s.add_argument("--out", type=Path, required=True, help="ROS 2: a new directory; ROS 1: a new FILE.bag")
     s.add_argument("--format", choices=("ros2", "ros1"), default="ros2")
-    s.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="ROS 2 storage plugin")
+    s.add_argument("--storage", choices=("sqlite3", "mcap"), default=None,
+                   help="ROS 2 storage plugin (default sqlite3; refused with --format ros1)")
     _add_bag_topic_options(s)
     s.set_defaults(func=_cmd_export_bag)
 

@@ -719,3 +719,12 @@ def test_out_naming_a_file_of_the_input_is_refused(command: str, name: str, run:
     assert (target.read_bytes() if target.exists() else None) == before
     # a file of another name beside the input's files is still fine
     assert main([command, str(source), "--out", str(source / "fitted.json")]) == 0
+
+
+def test_export_bag_refuses_a_ros2_storage_for_a_ros1_bag(run: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """``--storage mcap`` with ``--format ros1`` was ignored without a word (exit 0, a ROS 1 bag written)."""
+    bag = tmp_path / "normal.bag"
+    assert main(["export-bag", str(run), "--out", str(bag), "--format", "ros1", "--storage", "mcap"]) == 2
+    assert "--storage" in _one_error_line(capsys.readouterr().err)
+    assert not bag.exists()

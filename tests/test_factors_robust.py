@@ -45,7 +45,7 @@ def test_none_is_the_gaussian_and_parse() -> None:
     assert RobustLoss.parse("cauchy") == RobustLoss("cauchy", 1.0)
     assert RobustLoss.parse(" Cauchy:2.5 ") == RobustLoss("cauchy", 2.5)
     assert str(RobustLoss("huber", 2.0)) == "huber:2" and str(rl) == "none"
-    for bad in ["tukey:1", "huber:abc", "huber:-1", "cauchy:0", "huber:nan"]:
+    for bad in ["tukey:1", "huber:abc", "huber:-1", "cauchy:0", "huber:nan", None, 1.345]:
         with pytest.raises(ValueError):
             RobustLoss.parse(bad)
 

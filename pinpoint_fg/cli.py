@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.jsonfile import INT64_MAX
 
 METHODS = ("svn", "svgd", "pf", "map", "mht")
 SWITCHES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
@@ -50,7 +51,7 @@ def _path(text: str) -> Path:
 
 
 #: Largest accepted seed: the seed is recorded in the output's JSON, whose readers accept int64 integers only.
-MAX_SEED = 2**63 - 1
+MAX_SEED = INT64_MAX
 
 
 def _int_at_least(low: int, high: int | None = None):

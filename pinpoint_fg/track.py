@@ -22,6 +22,7 @@ from tqdm import tqdm
 from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.estimate import Estimate
+from pinpoint_fg.io.jsonfile import INT64_MAX
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
@@ -38,7 +39,7 @@ DEFAULT_PARTICLES = {"svn": 50, "svgd": 50, "pf": 3000, "map": 1, "mht": 4}
 #: Methods whose particles carry weights (particles.npz has ``weight``).
 WEIGHTED_METHODS = ("pf", "mht")
 #: Largest accepted seed: result.json records it, and its reader takes int64 (2**64 wrote an unreadable result).
-MAX_SEED = 2**63 - 1
+MAX_SEED = INT64_MAX
 
 
 def _whole(name: str, value: object, low: int, high: int = MAX_SEED) -> int:

@@ -22,7 +22,8 @@ MAX_JSON_DEPTH = 64
 #: Longest accepted integer literal, digits: int64's 19 (a ROS time stamp in ns has 19); a literal of
 #: 19 digits must still fit in int64.
 MAX_INT_DIGITS = 19
-_INT64_MAX = 2**63 - 1
+#: Largest integer the project's JSON files hold (int64): also the largest seed a result can record.
+INT64_MAX = 2**63 - 1
 
 _TOKENS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]', re.DOTALL)
 
@@ -49,7 +50,7 @@ def _parse_int(text: str) -> int:
     if digits > MAX_INT_DIGITS:
         raise _IntTooLong(f"integer literal with {digits} digits (at most {MAX_INT_DIGITS} accepted)")
     value = int(text)
-    if not -_INT64_MAX - 1 <= value <= _INT64_MAX:
+    if not -INT64_MAX - 1 <= value <= INT64_MAX:
         raise _IntTooLong(f"integer literal {text} does not fit in int64")
     return value
 

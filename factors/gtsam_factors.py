@@ -58,17 +58,16 @@ def _check_noise(noise: object, dim: int, sigmas: bool = True) -> gtsam.noiseMod
     return noise
 
 
-def _check_key(name: str, key: object) -> int:
-    if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not 0 <= int(key) < 2**64:
-        raise ValueError(f"{name} must be an integer gtsam key in [0, 2^64), got {key!r}")
-    return int(key)
-
-
 def _whole_index(name: str, value: object, count: int) -> int:
     """``value`` as an index in ``[0, count)``, else ValueError naming it."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= int(value) < count:
         raise ValueError(f"{name} must be a whole number in [0, {count}), got {value!r}")
     return int(value)
+
+
+def _check_key(name: str, key: object) -> int:
+    """A gtsam key: a whole number in ``[0, 2^64)`` (pybind's own refusal dumped its constructor signatures)."""
+    return _whole_index(name, key, 2**64)
 
 
 def _number(name: str, value: object, bound: float, positive: bool = False) -> float:

@@ -172,7 +172,7 @@ def track_recording(
         if value is not None or name in ("window", "seed"):
             _whole(name, value, low)  # max_frames=-1 tracked all frames but the last (a slice), silently
     _disabled(disable)
-    out = prepare_output_dir(out, overwrite, "result")
+    out = prepare_output_dir(out, overwrite, "result", inputs=(run,))
     scale = None
     if spread_scale is not None:
         scale = settings_entry(SpreadScale.load(spread_scale), method)  # refused before any work

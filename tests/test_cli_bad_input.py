@@ -728,3 +728,25 @@ def test_export_bag_refuses_a_ros2_storage_for_a_ros1_bag(run: Path, tmp_path: P
     assert main(["export-bag", str(run), "--out", str(bag), "--format", "ros1", "--storage", "mcap"]) == 2
     assert "--storage" in _one_error_line(capsys.readouterr().err)
     assert not bag.exists()
+
+
+@pytest.mark.parametrize("command", ["track", "evaluate-result", "evaluate-recording"])
+def test_out_that_is_the_input_directory_is_refused(command: str, run: Path, map_result: Path, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, ``track RUN --out RUN --overwrite`` wrote result.json, estimates.csv, ... into the recording (exit 0)
+    and ``evaluate RES --out RES --overwrite`` its tables into the result: two directories' files mixed. Refused
+    with or without --overwrite, given through a symlink too, and the input is left as it was."""
+    source = tmp_path / "in"
+    shutil.copytree(map_result if command == "evaluate-result" else run, source)
+    link = tmp_path / "link"
+    link.symlink_to(source, target_is_directory=True)
+    before = sorted(str(p.relative_to(source)) for p in source.rglob("*"))
+    argv = {"track": ["track", str(source), "--method", "map"],
+            "evaluate-result": ["evaluate", str(source)],
+            "evaluate-recording": ["evaluate", str(map_result), "--recording", str(source)]}[command]
+    for out in (source, link):
+        for overwrite in ([], ["--overwrite"]):
+            assert main([*argv, "--out", str(out), *overwrite]) == 2
+            line = _one_error_line(capsys.readouterr().err)
+            assert str(out) in line and "also an input" in line
+    assert sorted(str(p.relative_to(source)) for p in source.rglob("*")) == before

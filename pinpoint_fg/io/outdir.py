@@ -107,18 +107,38 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str) -> Pat
     return p
 
 
-def prepare_output_dir(path: str | os.PathLike, overwrite: bool, what: str) -> Path:
+def prepare_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
+                       inputs: Sequence[str | os.PathLike] = ()) -> Path:
     """Check that ``path`` may receive the output ``what`` (e.g. ``"result"``), create it, return it.
 
     Raises :class:`InputError` (module docstring) for a file in the way, a path under a file, a
-    non-empty directory without ``overwrite``, or a path the OS refuses.
+    non-empty directory without ``overwrite``, or a path the OS refuses; and, with or without
+    ``overwrite``, for a path that is one of the command's input directories ``inputs`` (a result written
+    into its own recording, or an evaluation into a result it reads, would mix two directories' files).
     """
+    same = _same_dir(path, inputs)
+    if same is not None:
+        raise InputError(f"--out is also an input of this command; write the {what} to a directory of its own",
+                         file=_short(path))
     p = check_output_dir(path, overwrite, what)
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(p)) from None
     return p
+
+
+def _same_dir(path: str | os.PathLike, inputs: Sequence[str | os.PathLike]) -> str | os.PathLike | None:
+    """The input of ``inputs`` that is the same existing directory as ``path`` (links followed), or None."""
+    try:
+        if not os.path.isdir(path):
+            return None
+        for root in inputs:
+            if os.path.isdir(root) and os.path.samefile(path, root):
+                return root
+    except (OSError, ValueError, TypeError):
+        return None  # unusable paths are refused, with their own message, by the checks that follow
+    return None
 
 
 #: Files a run or a result consists of, and the directories of a run's PNGs: an output file there replaced (with

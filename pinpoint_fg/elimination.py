@@ -78,8 +78,8 @@ class Linearization:
     """Per older pose j: the coupling block H_{j,j+1}, (N, 6, 6)."""
     window_value: np.ndarray
     """(N,) the window's negative log-posterior at the current poses (no elimination)."""
-    newest_part: np.ndarray | None = None
-    """(N,) the newest pose's own terms plus the last motion term at the current poses (L > 1)."""
+    newest_own: np.ndarray | None = None
+    """(N,) the newest pose's own terms (its frame's) at the current poses (L > 1)."""
 
 
     def append(self, other: Linearization) -> Linearization:
@@ -91,8 +91,8 @@ class Linearization:
                              [cat(a, b) for a, b in zip(self.cond_g, other.cond_g, strict=True)],
                              [cat(a, b) for a, b in zip(self.cond_B, other.cond_B, strict=True)],
                              cat(self.window_value, other.window_value),
-                             None if self.newest_part is None or other.newest_part is None
-                             else cat(self.newest_part, other.newest_part))
+                             None if self.newest_own is None or other.newest_own is None
+                             else cat(self.newest_own, other.newest_own))
 
     def subset(self, index: np.ndarray | list[int]) -> Linearization:
         """The same model for hypotheses ``index`` only (matches :meth:`pinpoint_fg.window.Window.subset`)."""
@@ -100,7 +100,7 @@ class Linearization:
         return Linearization(self.value[index], self.grad[index], self.hess[index],
                              [a[index] for a in self.cond_inv], [a[index] for a in self.cond_g],
                              [a[index] for a in self.cond_B], self.window_value[index],
-                             None if self.newest_part is None else self.newest_part[index])
+                             None if self.newest_own is None else self.newest_own[index])
 
 
 def whiten_prior(r: np.ndarray, J: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -218,12 +218,8 @@ def older_value(lin: Linearization, prev_T: np.ndarray, newest_T: np.ndarray, de
     poses ``x_{L-2}``, ``x_{L-1}``; ``delta``, ``W`` the last motion and its whitening.
     """
     dprev0 = -np.einsum("nij,nj->ni", lin.cond_inv[-1], lin.cond_g[-1])
-    # both residuals in one call: (x_{L-2} at its optimum, x_{L-2} as it is) against the newest pose
-    r = res.motion_residual(np.concatenate([prev_T @ se3_exp(dprev0), prev_T]), np.concatenate([newest_T, newest_T]),
-                            delta, False)[0]
-    v = motion_value(r, W)
-    n = prev_T.shape[0]
-    return lin.value - lin.newest_part - v[:n] + v[n:]
+    r = res.motion_residual(prev_T @ se3_exp(dprev0), newest_T, delta, False)[0]
+    return lin.value - lin.newest_own - motion_value(r, W)
 
 
 def marginal_prior(v0: np.ndarray, g0: np.ndarray, H0: np.ndarray,

@@ -253,4 +253,4 @@ def anchored_linearization(anchor: ChainAnchor, frames: list[FrameLikelihood], p
     Bs = list(B_old) + [m_Hpc]
     window_value = v_old + m_val + v_new
     c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs, list(head_inv))
-    return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, v_new + m_val)
+    return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, v_new)

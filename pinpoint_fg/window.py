@@ -70,12 +70,16 @@ from pinpoint_fg.window_memo import OldestTermsMemo
 RANDOM_WALK_SIGMA = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 
 #: Default relinearisation threshold of the older poses (:mod:`pinpoint_fg.relinearize`), in units of
-#: (5 deg, 1 mm) per tangent component. Measured (``scripts/svn_window_cost.py``, N = 50, L = 5, 150-frame
-#: seed-1 runs): SVN's mean MAP errors within 2 % of the exact path (0) on normal, rotation, suturing and
-#: kinfault (worst: rotation, +1.6 % in translation and rotation; suturing better), at 0.58-0.66x its CPU time
-#: per frame; 0.5 (an earlier form of the anchoring) was slower and, on rotation, 2.6 % worse in translation.
-#: (GTSAM's iSAM2 default, 0.1 rad / 0.1 m, is coarser.) L = 1 has no older poses: unaffected.
-DEFAULT_RELIN_THRESHOLD = 1.0
+#: (5 deg, 1 mm) per tangent component: 10 deg, 2 mm. Measured with ``scripts/svn_window_cost.py RUN --particles 50
+#: --windows 5 --relin 0 1 2`` (lock-step thread CPU; 16 runs of 150 frames: every scenario but symmetric at seed 1,
+#: all but rotation and symmetric at seed 2, snapshots at seed 3): 2 against 1 gave 5 % less CPU per frame at L = 5
+#: (median; 2-11 % less on 15 runs, 3 % more on normal-02)
+#: and mean MAP errors that moved both ways -- better on drive-01 (3.29 -> 3.14 deg) and rotation-01, worse on
+#: calibration-01 (0.440 -> 0.455 mm, 4.79 -> 4.87 deg) and drive-02 (+2.3 % rotation), within 1 % elsewhere; the snapshots runs,
+#: chaotic at every threshold, averaged 22.4 deg at 1 and 19.8 at 2 (exact path, 0: 16.0). 1 had been measured
+#: against 0 at 0.58-0.66x the CPU and within 2 % of its errors on normal, rotation, suturing and kinfault.
+#: (GTSAM's iSAM2 default, 0.1 rad / 0.1 m, is coarser in translation.) L = 1 has no older poses: unaffected.
+DEFAULT_RELIN_THRESHOLD = 2.0
 
 class Window:
     """The sliding windows of all hypotheses (see module docstring)."""
@@ -205,15 +209,14 @@ class Window:
         if L > 1 and self.relin_threshold > 0:
             return self._linearize_anchored()
         vals, gs, Hs = self._exact_unaries()
-        newest_part = vals[-1]
+        newest_own = vals[-1]
         Bs: list[np.ndarray] = []
         if L > 1:
             motion = chain_motion_terms(self.poses, self.deltas, self.delta_W)
-            newest_part = newest_part + motion[0][-1]
             vals, gs, Hs, Bs = add_chain_motion(vals, gs, Hs, motion)
         window_value = np.sum(vals, axis=0)
         c, g_run, H_run, cond_inv, cond_g = eliminate_onto_newest(window_value, gs, Hs, Bs)
-        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_part if L > 1 else None)
+        return Linearization(c, g_run, H_run, cond_inv, cond_g, Bs, window_value, newest_own if L > 1 else None)
 
     def _linearize_anchored(self) -> Linearization:
         """:meth:`linearize` with the older part from its anchored model (:mod:`pinpoint_fg.relinearize`)."""

@@ -73,10 +73,10 @@ RANDOM_WALK_SIGMA = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 #: (5 deg, 1 mm) per tangent component: 10 deg, 2 mm. Measured with ``scripts/svn_window_cost.py RUN --particles 50
 #: --windows 5 --relin 0 1 2`` (lock-step thread CPU; 16 runs of 150 frames: every scenario but symmetric at seed 1,
 #: all but rotation and symmetric at seed 2, snapshots at seed 3): 2 against 1 gave 5 % less CPU per frame at L = 5
-#: (median; 2-11 % less on 15 runs, 3 % more on normal-02)
-#: and mean MAP errors that moved both ways -- better on drive-01 (3.29 -> 3.14 deg) and rotation-01, worse on
-#: calibration-01 (0.440 -> 0.455 mm, 4.79 -> 4.87 deg) and drive-02 (+2.3 % rotation), within 1 % elsewhere; the snapshots runs,
-#: chaotic at every threshold, averaged 22.4 deg at 1 and 19.8 at 2 (exact path, 0: 16.0). 1 had been measured
+#: (median; 2-11 % less on 15 runs, 3 % more on normal-02) and mean MAP errors that moved both ways -- better on
+#: drive-01 (3.29 -> 3.14 deg) and rotation-01, worse on calibration-01 (0.440 -> 0.455 mm, 4.79 -> 4.87 deg) and
+#: drive-02 (+2.3 % rotation), within 1 % elsewhere; the snapshots runs, chaotic at every threshold, averaged
+#: 22.4 deg at 1 and 19.8 at 2 (exact path, 0: 16.0). 1 had been measured
 #: against 0 at 0.58-0.66x the CPU and within 2 % of its errors on normal, rotation, suturing and kinfault.
 #: (GTSAM's iSAM2 default, 0.1 rad / 0.1 m, is coarser in translation.) L = 1 has no older poses: unaffected.
 DEFAULT_RELIN_THRESHOLD = 2.0

@@ -3,7 +3,8 @@
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_settings_ab.py FIELD VALUE_A VALUE_B
 RUN [RUN ...]`` (e.g. ``floor_each true false /tmp/runs/normal-01``; FIELD is an
 :class:`~pinpoint_fg.trackers.svn.SvnSettings` field, or ``modes.NAME`` for a
-:class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one; the values are parsed as JSON: ``true``, ``2``, ``0.5``).
+:class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one; the values are parsed as JSON: ``true``, ``2``, ``0.5``;
+several fields comma-separated with JSON lists of values: ``modes.polish_iters,modes.max_candidates [8,6] [30,19]``).
 
 Both trackers are stepped in turn on every frame (lock-step, one thread: load on the machine hits both alike),
 with the run's suggested switches (``track``'s own). Prints per run the median thread-CPU milliseconds per frame
@@ -36,11 +37,17 @@ from pinpoint_fg.trackers.svn_modes import ModeSettings
 
 
 def _with(field: str, value: object) -> SvnSettings:
-    """The default settings with ``field`` set to ``value``; ``modes.NAME`` sets a :class:`ModeSettings` field."""
-    if field.startswith("modes."):
-        modes = dataclasses.replace(ModeSettings(), **{field.removeprefix("modes."): value})
-        return dataclasses.replace(SvnSettings(), modes=modes)
-    return dataclasses.replace(SvnSettings(), **{field: value})
+    """The default settings with ``field`` set to ``value``; ``modes.NAME`` sets a :class:`ModeSettings` field.
+
+    Several fields at once: ``field`` comma-separated and ``value`` a JSON list of as many values.
+    """
+    names = field.split(",")
+    values = value if len(names) > 1 else [value]
+    if not isinstance(values, list) or len(values) != len(names):
+        raise SystemExit(f"{field}: give a JSON list of {len(names)} values, got {value!r}")
+    top = {n: v for n, v in zip(names, values, strict=True) if not n.startswith("modes.")}
+    modes = {n.removeprefix("modes."): v for n, v in zip(names, values, strict=True) if n.startswith("modes.")}
+    return dataclasses.replace(SvnSettings(), modes=dataclasses.replace(ModeSettings(), **modes), **top)
 
 
 def main() -> None:

@@ -750,3 +750,34 @@ def test_out_that_is_the_input_directory_is_refused(command: str, run: Path, map
             line = _one_error_line(capsys.readouterr().err)
             assert str(out) in line and "also an input" in line
     assert sorted(str(p.relative_to(source)) for p in source.rglob("*")) == before
+
+
+# --- fourth audit: groundtruth, damaged results read back, huge counts, --out inside an importer's input -------
+
+@pytest.fixture(scope="module")
+def board_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A simulated run whose images show the ground-truth checkerboard (and which has ground truth)."""
+    out = tmp_path_factory.mktemp("audit4") / "calib"
+    assert main(["simulate", "--scenario", "calibration", "--frames", "3", "--seed", "2", "--images",
+                 "--out", str(out)]) == 0
+    return out
+
+
+def test_groundtruth_that_finds_no_board_keeps_the_runs_ground_truth(board_run: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, a board-to-needle file with the wrong board size (7 x 4 instead of 5 x 4) found the board in none of
+    the images and emptied every gt cell of the run, exit 0 ("no previous ground truth to compare with")."""
+    run = tmp_path / "run"
+    shutil.copytree(board_run, run)
+    before = (run / "frames.csv").read_bytes()
+    b2n = write_board_to_needle(tmp_path / "b2n.json")
+    doc = json.loads(b2n.read_text())
+    doc["board"]["squares_x"] = 7
+    b2n.write_text(json.dumps(doc))
+    assert main(["groundtruth", str(run), "--board-to-needle", str(b2n)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(b2n) in line and "'board'" in line and "none of the run's 3 images" in line
+    assert (run / "frames.csv").read_bytes() == before
+    # the right board still rewrites the gt columns
+    assert main(["groundtruth", str(run), "--board-to-needle", str(write_board_to_needle(tmp_path / "ok.json"))]) == 0
+    assert "board detected in 3" in capsys.readouterr().out

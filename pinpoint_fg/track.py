@@ -189,11 +189,12 @@ def track_recording(
 
 def _numerical_failure(exc: Exception) -> bool:
     """True for a tracker's numerical breakdown on degenerate input, reported as one line instead of a traceback:
-    GTSAM's indeterminate linear system (a ``RuntimeError``) or non-finite numbers the result writer refuses."""
+    GTSAM's indeterminate linear system (a ``RuntimeError``), or non-finite numbers or a pose beyond the format's
+    reach (a diverged estimate) that the result writer refuses."""
     text = str(exc)
     if isinstance(exc, RuntimeError):
         return "Indeterminate linear system" in text
-    return "NaN" in text or "infinite" in text
+    return "NaN" in text or "infinite" in text or "beyond the result format's" in text
 
 
 def _first_line(exc: Exception) -> str:

@@ -9,6 +9,7 @@ import errno
 import json
 import os
 import shutil
+import warnings
 import zlib
 from dataclasses import replace
 from pathlib import Path
@@ -256,10 +257,14 @@ class _Breaks:
             return est
         if self.how == "gtsam":  # what GTSAM raised with a principal point 10 images off (cx = -10000)
             raise RuntimeError("\nIndeterminate linear system detected while working near variable\n9 (Symbol: 9).")
+        if self.how == "diverged":  # a pose 10 000 km away: written, it made a result its own reader refuses
+            far = np.array(est.cam_T_needle, dtype=float)
+            far[0, 3] = 1e7
+            return replace(est, cam_T_needle=far)
         return replace(est, log_posterior=np.full_like(np.asarray(est.log_posterior, dtype=float), np.inf))
 
 
-@pytest.mark.parametrize("how", ["gtsam", "nonfinite"])
+@pytest.mark.parametrize("how", ["gtsam", "nonfinite", "diverged"])
 def test_tracker_breakdown_is_one_line_and_keeps_finished_frames(how: str, run: Path, tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
@@ -781,3 +786,51 @@ def test_groundtruth_that_finds_no_board_keeps_the_runs_ground_truth(board_run: 
     # the right board still rewrites the gt columns
     assert main(["groundtruth", str(run), "--board-to-needle", str(write_board_to_needle(tmp_path / "ok.json"))]) == 0
     assert "board detected in 3" in capsys.readouterr().out
+
+
+def _edit_cell(path: Path, row: int, column: str, cell: str) -> None:
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index(column)] = cell
+    lines[row] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+
+
+DAMAGED_RESULTS = [  # file, row, column, cell: each was a traceback of `evaluate` before
+    ("estimates.csv", 2, "x_m", "1e300"),          # LinAlgError "Eigenvalues did not converge" (after warnings)
+    ("smoothed.csv", 2, "z_m", "-1e300"),
+    ("modes.csv", 1, "frame", str(2**63)),         # OverflowError: Python int too large to convert to C long
+    ("modes.csv", 1, "y_m", "1e300"),              # NumPy overflow warnings, then exit 0
+    ("modes.csv", 1, "qw", "1e200"),               # "norm inf" after NumPy's overflow warning
+    ("particles.npz", 2, "xyz_m", "1e300"),
+]
+
+
+@pytest.fixture(scope="module")
+def svn_result(run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An SVN result with every file: estimates, smoothed (L = 2), modes, particles."""
+    out = tmp_path_factory.mktemp("audit4") / "svn"
+    assert main(["track", str(run), "--method", "svn", "--particles", "8", "--window", "2", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize(("name", "row", "column", "cell"), DAMAGED_RESULTS,
+                         ids=[f"{n}:{c}={v}" for n, _, c, v in DAMAGED_RESULTS])
+def test_a_damaged_result_is_located_not_a_traceback(name: str, row: int, column: str, cell: str, svn_result: Path,
+                                                      tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    if name == "particles.npz":
+        with np.load(result / name) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays[column][row - 1, 0, 0] = float(cell)
+        np.savez(result / name, **arrays)
+    else:
+        _edit_cell(result / name, row, column, cell)
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # on the command line, NumPy's warning was a second line
+        assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(result / name) in line and f"row {row}" in line and repr(column) in line

@@ -22,6 +22,7 @@ from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.recording.schema import QUAT_NORM_TOL, shown
 from pinpoint_fg.io.result.schema import (
+    MAX_ABS_RESULT_METRES,
     PARTICLES_JOURNAL,
     PARTICLES_NPZ,
     ParticleHistory,
@@ -176,6 +177,10 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
     ):
         if np.any(bad):
             raise InputError("contains NaN or infinite values", file=path, row=first_bad(bad), column=k)
+    bad = np.abs(xyz) > MAX_ABS_RESULT_METRES
+    if np.any(bad):
+        raise InputError(f"a position lies beyond the result format's {MAX_ABS_RESULT_METRES:g} m of the camera",
+                         file=path, row=first_bad(bad), column="xyz_m")
     # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
     norm = np.sqrt(np.sum(np.square(np.clip(arrays["quat_wxyz"], -2.0, 2.0)), axis=-1))
     bad = np.abs(norm - 1.0) > QUAT_NORM_TOL

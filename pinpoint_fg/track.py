@@ -26,6 +26,7 @@ from pinpoint_fg.io.jsonfile import INT64_MAX
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.result.particles import MAX_PARTICLES
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.io.spread_scale import SpreadScale, scaled_cov_xi, settings_entry
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
@@ -46,7 +47,7 @@ def _whole(name: str, value: object, low: int, high: int = MAX_SEED) -> int:
     """``value`` as an int in ``[low, high]``, else ValueError naming it: a float is refused, not truncated
     (``particles=10.5`` tracked with 10), and NumPy's "expected non-negative integer" named no argument."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= int(value) <= high:
-        where = f"in [{low}, {high}]" if name == "seed" else f">= {low}"
+        where = f"in [{low}, {high}]" if name in ("seed", "particles") else f">= {low}"
         raise ValueError(f"{name} must be a whole number {where}, got {value!r}")
     return int(value)
 
@@ -170,7 +171,9 @@ def track_recording(
     for name, value, low in (("particles", particles, 1), ("window", window, 1), ("seed", seed, 0),
                              ("max_frames", max_frames, 1), ("blas_threads", blas_threads, 1)):
         if value is not None or name in ("window", "seed"):
-            _whole(name, value, low)  # max_frames=-1 tracked all frames but the last (a slice), silently
+            # max_frames=-1 tracked all frames but the last (a slice), silently; particles beyond what a result
+            # holds were NumPy's MemoryError traceback after the run had been read
+            _whole(name, value, low, MAX_PARTICLES if name == "particles" else MAX_SEED)
     _disabled(disable)
     out = prepare_output_dir(out, overwrite, "result", inputs=(run,))
     scale = None

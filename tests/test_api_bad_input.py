@@ -152,6 +152,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ({"disable": "tip"}, "disable"),          # split into the switches 't', 'i', 'p'
     ({"blas_threads": 0}, "blas_threads"),
     ({"method": "bogus"}, "method"),
+    ({"particles": 10**11}, "particles"),     # NumPy's "Unable to allocate 11.6 TiB" MemoryError, after reading the run
 ])
 def test_track_recording_refuses_bad_arguments_before_any_work(kwargs: dict, says: str, run: Path,
                                                                tmp_path: Path) -> None:

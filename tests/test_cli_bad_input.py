@@ -834,3 +834,22 @@ def test_a_damaged_result_is_located_not_a_traceback(name: str, row: int, column
         assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert str(result / name) in line and f"row {row}" in line and repr(column) in line
+
+
+@pytest.mark.parametrize("command", ["track", "batch"])
+def test_a_particle_count_no_result_can_hold_is_a_usage_error(command: str, run: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """``--particles 100000000000`` was accepted, the run read, then NumPy's "Unable to allocate 11.6 TiB" traceback;
+    a result's reader takes at most 10 million particles (its journal check)."""
+    with pytest.raises(SystemExit) as exc:
+        main([command, str(run), "--method", "pf", "--particles", "100000000000", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert "--particles" in _one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_running_out_of_memory_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``simulate --frames 100000000000`` was NumPy's "Unable to allocate 745. GiB" traceback (exit 1)."""
+    assert main(["simulate", "--scenario", "normal", "--frames", "100000000000", "--out", str(tmp_path / "s")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line.startswith("error: out of memory") and "fewer frames" in line

@@ -853,3 +853,33 @@ def test_running_out_of_memory_is_one_line(tmp_path: Path, capsys: pytest.Captur
     assert main(["simulate", "--scenario", "normal", "--frames", "100000000000", "--out", str(tmp_path / "s")]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert line.startswith("error: out of memory") and "fewer frames" in line
+
+
+@pytest.mark.parametrize("command", ["import-bag", "import-bop", "batch", "ablate"])
+def test_out_that_is_an_importers_or_pools_input_is_refused(command: str, run: Path, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, ``import-bag BAG --out BAG --overwrite`` wrote recording.json, frames.csv and masks/ into the ROS 2 bag
+    directory, ``import-bop SCENE --out SCENE --overwrite`` the run into the BOP scene, ``batch RUN --out RUN
+    --overwrite`` (and ``ablate``) results into the recording (exit 0): two directories' files mixed. As for
+    ``track`` and ``evaluate``: refused with or without --overwrite, before any work, the input left as it was."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    if command == "import-bag":
+        source = tmp_path / "bag"
+        assert main(["export-bag", str(run), "--out", str(source)]) == 0
+        argv = ["import-bag", str(source), "--needle", str(run / "recording.json")]
+    elif command == "import-bop":
+        info = write_bop_scene(tmp_path / "dataset", n_images=2)
+        source = Path(info["scene"])
+        argv = ["import-bop", str(source), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID)]
+    else:
+        source = tmp_path / "run"
+        shutil.copytree(run, source)
+        argv = [command, str(source), *(["--method", "pf", "--workers", "1"] if command == "batch" else [])]
+    capsys.readouterr()
+    before = sorted(str(p.relative_to(source)) for p in source.rglob("*"))
+    for overwrite in ([], ["--overwrite"]):
+        assert main([*argv, "--out", str(source), *overwrite]) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert str(source) in line and "also an input" in line
+    assert sorted(str(p.relative_to(source)) for p in source.rglob("*")) == before

@@ -151,7 +151,7 @@ def ablate(runs: list[Path], out: Path, jobs: int = 2, frames: int | None = None
     or empty unless ``overwrite`` (:func:`pinpoint_fg.io.outdir.prepare_output_dir`).
     """
     job_list = ablation_jobs(runs, out, frames)  # reads every run first: bad input costs nothing
-    out = prepare_output_dir(out, overwrite, "ablation")
+    out = prepare_output_dir(out, overwrite, "ablation", inputs=runs)
     done, failures = run_jobs(job_list, workers=int(jobs))
     report = evaluate_results([Path(p) for p in done], out=out)
     text = report.table_iii or report.table_ii

@@ -125,7 +125,7 @@ def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: in
         scale = Path(options["spread_scale"]).absolute()
         settings_entry(SpreadScale.load(scale), method)  # a bad file or a method without factors: say so once
         options["spread_scale"] = str(scale)
-    prepare_output_dir(out_dir, bool(options.get("overwrite", False)), "batch output")
+    prepare_output_dir(out_dir, bool(options.get("overwrite", False)), "batch output", inputs=paths)
     return paths, options
 
 

@@ -435,7 +435,7 @@ def import_bag(
     if not math.isfinite(stamp_tolerance_s) or not 0 <= stamp_tolerance_s <= 1e9:  # 1e308 overflowed the ns
         raise InputError(f"must be a finite number in [0, 1e9], got {stamp_tolerance_s}", column="--stamp-tolerance-s")
     needle_model = needle if isinstance(needle, NeedleModel) else read_needle_json(needle)
-    check_output_dir(out, overwrite, "run")
+    check_output_dir(out, overwrite, "run", inputs=(bag,))  # a ROS 2 bag is a directory
     data, cam = _read_bag(bag, topics)
 
     ci = data["camera_info"]
@@ -521,7 +521,7 @@ def import_bag(
             raise InputError(f"{exc.reason} ({exc.column})", file=bag,
                              column=data[role].topic if role in data else exc.column) from None
         records.append(rec)
-    prepare_output_dir(out, overwrite, "run")
+    prepare_output_dir(out, overwrite, "run", inputs=(bag,))
     with RecordingWriter(out, info) as writer:
         for k, rec in enumerate(records):
             mask = pick("mask", k)

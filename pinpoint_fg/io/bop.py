@@ -324,7 +324,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     _check_config(cfg)
     if not scene.is_dir():
         raise InputError("not a directory (the BOP scene)", file=scene)
-    check_output_dir(out, overwrite, "run")
+    check_output_dir(out, overwrite, "run", inputs=(scene,))
     fit = fit_needle_mesh(read_ply_vertices(model_path, cfg.model_units), tip_end=cfg.tip_end, source=model_path)
     try:
         needle = fit.needle_model(cfg.grasp_angle_rad)
@@ -373,7 +373,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
                          needle=needle, extra=extra)
     rng = np.random.default_rng(cfg.seed)
     n_gt = n_mask = n_kp = 0
-    prepare_output_dir(out, overwrite, "run")
+    prepare_output_dir(out, overwrite, "run", inputs=(scene,))
     with RecordingWriter(out, info) as writer:
         for im in ids:
             gt = gts.get(im)

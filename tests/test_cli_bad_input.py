@@ -325,7 +325,8 @@ def test_import_bag_refuses_a_needle_or_tolerance_out_of_range(run: Path, tmp_pa
     needle_file.write_text(json.dumps(needle))
     out = tmp_path / "imported"
     assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(needle_file)]) == 2  # was 0
-    assert "needle.radius_m" in _one_error_line(capsys.readouterr().err)
+    line = _one_error_line(capsys.readouterr().err)
+    assert "radius_m" in line and str(needle_file) in line  # (the fourth audit: was the run's recording.json)
     # was OverflowError: cannot convert float infinity to integer
     assert main(["import-bag", str(bag), "--out", str(tmp_path / "b"), "--needle", str(run / "recording.json"),
                  "--stamp-tolerance-s", "1e308"]) == 2
@@ -883,3 +884,22 @@ def test_out_that_is_an_importers_or_pools_input_is_refused(command: str, run: P
         line = _one_error_line(capsys.readouterr().err)
         assert str(source) in line and "also an input" in line
     assert sorted(str(p.relative_to(source)) for p in source.rglob("*")) == before
+
+
+@pytest.mark.parametrize(("key", "value"), [("radius_m", 1e308), ("wire_diameter_m", 2.0), ("tip_angle_rad", -1e9)])
+def test_import_bag_names_the_needle_file_for_a_needle_out_of_range(key: str, value: float, run: Path, tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """A NEEDLE.json with ``radius_m: 1e308`` was blamed on the run being written ("OUT/recording.json: column
+    'needle.radius_m'"), after the whole bag had been read; now the needle file and its key are named first."""
+    bag = tmp_path / "bag"
+    assert main(["export-bag", str(run), "--out", str(bag)]) == 0
+    doc = json.loads((run / "recording.json").read_text())["needle"]
+    doc[key] = value
+    needle = tmp_path / "needle.json"
+    needle.write_text(json.dumps(doc))
+    capsys.readouterr()
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(needle)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line.startswith(f"error: {needle}: column {key!r}: out of range")
+    assert not out.exists()

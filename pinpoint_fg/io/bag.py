@@ -88,7 +88,14 @@ from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.io.recording.schema import QUAT_NORM_TOL, FrameRecord, Recording, RecordingInfo
+from pinpoint_fg.io.recording.schema import (
+    MAX_ABS_ANGLE_RAD,
+    MAX_NEEDLE_M,
+    QUAT_NORM_TOL,
+    FrameRecord,
+    Recording,
+    RecordingInfo,
+)
 from pinpoint_fg.io.recording.writer import RecordingWriter, frame_cells
 
 #: recording.json key holding what a bag import knows beyond the format (time origin, frame id).
@@ -179,8 +186,9 @@ class BagImportSummary:
 def read_needle_json(path: str | Path) -> NeedleModel:
     """The needle of ``NEEDLE.json``: the ``needle`` object of recording.json, or a whole recording.json.
 
-    Every key of the needle object is required and a finite number (``radius_m`` and
-    ``wire_diameter_m`` > 0); unknown keys are ignored. Errors name the file and the key.
+    Every key of the needle object is required and a finite number within the recording format's bounds
+    (``radius_m`` and ``wire_diameter_m`` in (0, :data:`MAX_NEEDLE_M`], angles within ±:data:`MAX_ABS_ANGLE_RAD`);
+    unknown keys are ignored. Errors name the file and the key.
     """
     path = Path(path)
     try:
@@ -205,6 +213,11 @@ def read_needle_json(path: str | Path) -> NeedleModel:
         v = doc[key]
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
             raise InputError(f"must be a finite number, got {json.dumps(v)}", file=path, column=prefix + key)
+        # the recording format's bounds, named here: beyond them the run's own recording.json was blamed at writing
+        low, high = (0.0, MAX_NEEDLE_M) if key in ("radius_m", "wire_diameter_m") else (-MAX_ABS_ANGLE_RAD,
+                                                                                       MAX_ABS_ANGLE_RAD)
+        if not low <= v <= high:
+            raise InputError(f"out of range: {v:g} (accepted {low:g} .. {high:g})", file=path, column=prefix + key)
         values[key] = float(v)
     try:
         return NeedleModel(**values)

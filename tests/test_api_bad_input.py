@@ -279,3 +279,29 @@ def test_one_path_where_a_list_of_paths_is_expected_is_named(run: Path, tmp_path
             with pytest.raises(InputError, match=f"{name} must be a list of paths, got the single path"):
                 call(one)
     assert not any(tmp_path.iterdir())
+
+
+# --- fourth audit -------------------------------------------------------------------------------------------
+
+def test_notebook_calls_with_none_or_a_number_name_the_argument(run: Path, tmp_path: Path) -> None:
+    """``evaluate_results(None)`` was "'NoneType' object is not iterable", ``[None]`` and ``out=None`` pathlib's
+    "expected str, bytes or os.PathLike object", ``read_modes(None)`` / ``read_modes(3)`` the same: no argument
+    named. Now each is an InputError naming it, before anything is written."""
+    from pinpoint_fg.eval.calibrate import calibrate_runs
+    from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.io.result.reader import read_modes
+
+    result = track_recording(run, "map", tmp_path / "res", progress=False)
+    with pytest.raises(InputError, match=r"results must be a list of paths, got NoneType"):
+        evaluate_results(None, out=tmp_path / "e")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"results\[1\] must be a path"):
+        evaluate_results([result, None], out=tmp_path / "e")  # type: ignore[list-item]
+    with pytest.raises(InputError, match=r"runs must be a list of paths, got int"):
+        calibrate_runs(5)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"^out must be a path"):
+        evaluate_results([result], out=None)  # type: ignore[arg-type]
+    for bad in (None, 3):
+        with pytest.raises(InputError, match=r"^out_dir must be a path"):
+            read_modes(bad)  # type: ignore[arg-type]
+    assert not (tmp_path / "e").exists()
+    assert read_modes(result).frame.size > 0  # a valid call still reads

@@ -903,3 +903,41 @@ def test_import_bag_names_the_needle_file_for_a_needle_out_of_range(key: str, va
     line = _one_error_line(capsys.readouterr().err)
     assert line.startswith(f"error: {needle}: column {key!r}: out of range")
     assert not out.exists()
+
+
+def test_import_bop_corrupt_png_mask_is_one_line(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """A BOP mask PNG cut after its signature: OpenCV printed "[ERROR:0@...] global grfmt_png.cpp ... readHeader IHDR
+    chunk shall be first" on stderr before our line. The PNG's structure is now checked before OpenCV sees it, as a
+    recording's PNGs are (pinpoint_fg.io.recording.png)."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=2)
+    mask = Path(info["scene"]) / "mask_visib" / "000001_000001.png"
+    mask.write_bytes(mask.read_bytes()[:12])
+    capfd.readouterr()
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(tmp_path / "run")]) == 2
+    err = capfd.readouterr().err  # the file descriptor: OpenCV writes past sys.stderr
+    assert len([s for s in err.splitlines() if s.strip()]) == 1, err
+    line = _one_error_line(err)
+    assert str(mask) in line and "not a readable image" in line
+
+
+def test_import_bop_names_scene_camera_for_a_focal_length_out_of_range(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """``cam_K`` with fx = 1e300 was blamed on the run being written ("OUT/recording.json: column 'camera.fx'") and
+    left OUT behind; now scene_camera.json and its key are named before anything is written."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=2)
+    cameras = Path(info["scene"]) / "scene_camera.json"
+    doc = json.loads(cameras.read_text())
+    for entry in doc.values():
+        entry["cam_K"][0] = 1e300
+    cameras.write_text(json.dumps(doc))
+    out = tmp_path / "run"
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(cameras) in line and "'0.cam_K'" in line and "focal length" in line
+    assert not out.exists()

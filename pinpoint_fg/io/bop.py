@@ -61,7 +61,8 @@ from factors.lie import homogeneous
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
-from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
+from pinpoint_fg.io.recording.schema import MAX_FOCAL_PX, FrameRecord, RecordingInfo
 from pinpoint_fg.io.recording.writer import RecordingWriter
 
 SCENE_CAMERA = "scene_camera.json"
@@ -180,6 +181,9 @@ def _camera_entries(path: Path) -> dict[int, np.ndarray]:
                              file=path, column=f"{key}.cam_K")
         if K[0, 1] != 0:
             raise InputError(f"skew {K[0, 1]} is not supported (must be 0)", file=path, column=f"{key}.cam_K")
+        if max(K[0, 0], K[1, 1]) > MAX_FOCAL_PX:  # the recording format's bound, named here (was: OUT/recording.json)
+            raise InputError(f"focal length {max(K[0, 0], K[1, 1]):g} px is beyond the recording format's "
+                             f"{MAX_FOCAL_PX:g} px", file=path, column=f"{key}.cam_K")
         if first is None:
             first = (key, K)
         elif not np.allclose(K, first[1], rtol=1e-9, atol=0.0):
@@ -261,7 +265,16 @@ def _find_image(scene: Path, im: int) -> Path:
 def _read(path: Path, flags: int, size: tuple[int, int] | None) -> np.ndarray:
     if not path.is_file():
         raise InputError("file not found", file=path)
-    img = cv2.imread(str(path), flags)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror or exc}", file=path) from None
+    if data.startswith(PNG_SIGNATURE):
+        try:  # a corrupt PNG made OpenCV print its own "[ERROR] ... readHeader" line before ours
+            check_png(data)
+        except ValueError as exc:
+            raise InputError(f"not a readable image: {exc}", file=path) from None
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags) if data else None
     if img is None:
         raise InputError("not a readable image", file=path)
     if size is not None and (img.shape[1], img.shape[0]) != size:

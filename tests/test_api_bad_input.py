@@ -305,3 +305,15 @@ def test_notebook_calls_with_none_or_a_number_name_the_argument(run: Path, tmp_p
             read_modes(bad)  # type: ignore[arg-type]
     assert not (tmp_path / "e").exists()
     assert read_modes(result).frame.size > 0  # a valid call still reads
+
+
+@pytest.mark.parametrize("side_px", [1, 3, 8, 14, 23])
+def test_detect_board_on_an_image_too_small_for_the_board_is_none(side_px: int) -> None:
+    """An image under 15 px a side was OpenCV's "(-215:Assertion failed) blockSize % 2 == 1 && blockSize > 1" cv2.error
+    (a traceback from ``groundtruth`` on a run of tiny images); an image too small to show the board finds none."""
+    from pinpoint_fg.checkerboard import BoardSpec, detect_board
+
+    camera = PinholeCamera(fx=600.0, fy=600.0, cx=side_px / 2, cy=side_px / 2, width=side_px, height=side_px)
+    rng = np.random.default_rng(side_px)
+    for image in (np.zeros((side_px, side_px), np.uint8), rng.integers(0, 256, (side_px, 640), dtype=np.uint8)):
+        assert detect_board(image, camera, BoardSpec()) is None

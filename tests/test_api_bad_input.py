@@ -317,3 +317,26 @@ def test_detect_board_on_an_image_too_small_for_the_board_is_none(side_px: int) 
     rng = np.random.default_rng(side_px)
     for image in (np.zeros((side_px, side_px), np.uint8), rng.integers(0, 256, (side_px, 640), dtype=np.uint8)):
         assert detect_board(image, camera, BoardSpec()) is None
+
+
+@pytest.mark.parametrize("change", ["str", "record", "complex", "no particles"])
+def test_particles_npz_of_the_wrong_dtype_or_no_particles_is_located(change: str, run: Path, tmp_path: Path) -> None:
+    """``xyz_m`` saved as strings or a record dtype was NumPy's "ufunc 'isfinite' not supported" TypeError, as complex
+    numbers a ComplexWarning (imaginary parts dropped), and zero particles per frame was read (a "truth kept by
+    some particle" share of 0 %). The other arrays were already required to be float."""
+    import warnings
+
+    result = track_recording(run, "map", tmp_path / "res", progress=False)
+    with np.load(result / "particles.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    xyz = arrays["xyz_m"]
+    arrays["xyz_m"] = {"str": xyz.astype(str), "record": np.zeros(xyz.shape, dtype=[("a", "f8")]),
+                       "complex": xyz.astype(complex), "no particles": xyz[:, :0]}[change]
+    if change == "no particles":
+        for k in ("quat_wxyz", "log_posterior"):
+            arrays[k] = arrays[k][:, :0]
+    np.savez(result / "particles.npz", **arrays)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=r"particles\.npz: column 'xyz_m': must be a float array"):
+            read_result(result)

@@ -154,8 +154,12 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
         raise InputError(msg, file=path, column="frame")
     F = frame.shape[0]
     xyz = arrays["xyz_m"]
-    if xyz.ndim != 3 or xyz.shape[0] != F or xyz.shape[2] != 3:
-        raise InputError(f"must have shape (F={F}, N, 3), got {xyz.shape}", file=path, column="xyz_m")
+    # a float array like the others (strings or a record dtype were NumPy's isfinite TypeError, complex numbers
+    # a ComplexWarning and their imaginary part dropped); at least one particle, as the writer and the journal have
+    if xyz.ndim != 3 or xyz.shape[0] != F or xyz.shape[2] != 3 or xyz.shape[1] < 1 \
+            or not np.issubdtype(xyz.dtype, np.floating):
+        raise InputError(f"must be a float array of shape (F={F}, N >= 1, 3), got {xyz.dtype} {xyz.shape}", file=path,
+                         column="xyz_m")
     N = xyz.shape[1]
     shapes = {"quat_wxyz": (F, N, 4), "log_posterior": (F, N), "weight": (F, N)}
     for k in keys[2:]:

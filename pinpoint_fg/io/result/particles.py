@@ -156,7 +156,8 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
     xyz = arrays["xyz_m"]
     # a float array like the others (strings or a record dtype were NumPy's isfinite TypeError, complex numbers
     # a ComplexWarning and their imaginary part dropped); at least one particle, as the writer and the journal have
-    if xyz.ndim != 3 or xyz.shape[0] != F or xyz.shape[2] != 3 or xyz.shape[1] < 1 \
+    # (a result without frames is written with N = 0)
+    if xyz.ndim != 3 or xyz.shape[0] != F or xyz.shape[2] != 3 or (F > 0 and xyz.shape[1] < 1) \
             or not np.issubdtype(xyz.dtype, np.floating):
         raise InputError(f"must be a float array of shape (F={F}, N >= 1, 3), got {xyz.dtype} {xyz.shape}", file=path,
                          column="xyz_m")

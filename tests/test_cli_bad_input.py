@@ -923,21 +923,51 @@ def test_import_bop_corrupt_png_mask_is_one_line(tmp_path: Path, capfd: pytest.C
     assert str(mask) in line and "not a readable image" in line
 
 
-def test_import_bop_names_scene_camera_for_a_focal_length_out_of_range(tmp_path: Path,
-                                                                        capsys: pytest.CaptureFixture[str]) -> None:
-    """``cam_K`` with fx = 1e300 was blamed on the run being written ("OUT/recording.json: column 'camera.fx'") and
-    left OUT behind; now scene_camera.json and its key are named before anything is written."""
+@pytest.mark.parametrize(("index", "key"), [(0, "camera.fx"), (2, "camera.cx")])
+def test_import_bop_names_scene_camera_for_intrinsics_out_of_range(index: int, key: str, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """``cam_K`` with fx = 1e300 (or cx = 1e12) was blamed on the run being written ("OUT/recording.json: column
+    'camera.fx'") and left OUT behind; now scene_camera.json and its key are named before anything is written."""
     from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
 
     info = write_bop_scene(tmp_path / "dataset", n_images=2)
     cameras = Path(info["scene"]) / "scene_camera.json"
     doc = json.loads(cameras.read_text())
     for entry in doc.values():
-        entry["cam_K"][0] = 1e300
+        entry["cam_K"][index] = 1e300 if index == 0 else 1e12
     cameras.write_text(json.dumps(doc))
     out = tmp_path / "run"
     assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
                  "--out", str(out)]) == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert str(cameras) in line and "'0.cam_K'" in line and "focal length" in line
+    assert str(cameras) in line and "'0.cam_K'" in line and key in line and "out of range" in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("index", "key"), [(0, "camera.fx"), (2, "camera.cx")])
+def test_import_bag_names_camera_info_for_intrinsics_out_of_range(index: int, key: str, run: Path, tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """A camera_info whose K has fx = 1e300 (or cx = 1e12) was blamed on OUT/recording.json and left a half-written
+    run behind; now the bag and its camera_info topic are named, before anything is written."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    good = tmp_path / "good.bag"
+    assert main(["export-bag", str(run), "--out", str(good), "--format", "ros1"]) == 0
+    bag = tmp_path / "bad.bag"
+    with AnyReader([good]) as reader, Writer(bag) as writer:
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=reader.typestore)
+                 for c in reader.connections}
+        for conn, stamp, raw in reader.messages():
+            if conn.topic == "/camera/camera_info":
+                msg = reader.deserialize(raw, conn.msgtype)
+                msg.K = msg.K.copy()  # ROS 1 spells it K; deserialised read-only
+                msg.K[index] = 1e300 if index == 0 else 1e12
+                raw = reader.typestore.serialize_ros1(msg, conn.msgtype)
+            writer.write(conns[conn.id], stamp, raw)
+    capsys.readouterr()
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(run / "recording.json")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bag) in line and "'/camera/camera_info'" in line and key in line and "out of range" in line
     assert not out.exists()

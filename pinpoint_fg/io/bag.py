@@ -96,7 +96,7 @@ from pinpoint_fg.io.recording.schema import (
     Recording,
     RecordingInfo,
 )
-from pinpoint_fg.io.recording.writer import RecordingWriter, frame_cells
+from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info, frame_cells
 
 #: recording.json key holding what a bag import knows beyond the format (time origin, frame id).
 ROS_BAG_KEY = "ros_bag"
@@ -513,6 +513,12 @@ def import_bag(
         camera=camera, needle=needle_model,
         extra={ROS_BAG_KEY: {"time_origin_ns": origin, "camera_frame_id": frame_id}},
     )
+    try:  # before anything is written; the camera's values came from the bag's camera_info: name that topic
+        check_recording_info(info, out / "recording.json")
+    except InputError as exc:
+        if not str(exc.column).startswith("camera"):
+            raise
+        raise InputError(f"{exc.reason} ({exc.column})", file=bag, column=ci.topic) from None
 
     def pick(role: str, k: int) -> Any:
         idx = picks.get(role)

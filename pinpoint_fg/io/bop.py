@@ -62,8 +62,8 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
 from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
-from pinpoint_fg.io.recording.schema import MAX_FOCAL_PX, FrameRecord, RecordingInfo
-from pinpoint_fg.io.recording.writer import RecordingWriter
+from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info
 
 SCENE_CAMERA = "scene_camera.json"
 SCENE_GT = "scene_gt.json"
@@ -181,9 +181,6 @@ def _camera_entries(path: Path) -> dict[int, np.ndarray]:
                              file=path, column=f"{key}.cam_K")
         if K[0, 1] != 0:
             raise InputError(f"skew {K[0, 1]} is not supported (must be 0)", file=path, column=f"{key}.cam_K")
-        if max(K[0, 0], K[1, 1]) > MAX_FOCAL_PX:  # the recording format's bound, named here (was: OUT/recording.json)
-            raise InputError(f"focal length {max(K[0, 0], K[1, 1]):g} px is beyond the recording format's "
-                             f"{MAX_FOCAL_PX:g} px", file=path, column=f"{key}.cam_K")
         if first is None:
             first = (key, K)
         elif not np.allclose(K, first[1], rtol=1e-9, atol=0.0):
@@ -384,6 +381,12 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     }}
     info = RecordingInfo(name=cfg.name or scene.resolve().name, frame_rate_hz=float(cfg.fps), camera=camera,
                          needle=needle, extra=extra)
+    try:  # before anything is written; the camera's values came from scene_camera.json: name it
+        check_recording_info(info, out / "recording.json")
+    except InputError as exc:
+        if not str(exc.column).startswith("camera"):
+            raise
+        raise InputError(f"{exc.reason} ({exc.column})", file=scene / SCENE_CAMERA, column=f"{ids[0]}.cam_K") from None
     rng = np.random.default_rng(cfg.seed)
     n_gt = n_mask = n_kp = 0
     prepare_output_dir(out, overwrite, "run", inputs=(scene,))

@@ -12,6 +12,7 @@ wall time stays close to the sum of the step latencies (README, *Latency*).
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import replace
 from pathlib import Path
@@ -53,10 +54,16 @@ def _whole(name: str, value: object, low: int, high: int = MAX_SEED) -> int:
 
 
 def _disabled(disable: object) -> tuple[str, ...]:
-    """``disable`` as a tuple of switch names; a single string was split into its letters (``"tip"``: t, i, p)."""
+    """``disable`` as a tuple of known switch names; a single string was split into its letters (``"tip"``: t, i,
+    p), None was "'NoneType' object is not iterable", and an unknown name was refused only after ``out`` existed."""
     if isinstance(disable, str):
         raise ValueError(f"disable must be a list of switch names, got the string {disable!r} (write [{disable!r}])")
-    return tuple(disable)  # type: ignore[arg-type]
+    try:
+        names = tuple(disable)  # type: ignore[arg-type]
+    except TypeError:
+        raise ValueError(f"disable must be a list of switch names, got {type(disable).__name__}") from None
+    Switches.from_disabled(names)  # ValueError naming the unknown ones and the choices
+    return names
 
 
 def make_tracker(method: str, config: TrackerConfig) -> Tracker:
@@ -175,6 +182,12 @@ def track_recording(
             # holds were NumPy's MemoryError traceback after the run had been read
             _whole(name, value, low, MAX_PARTICLES if name == "particles" else MAX_SEED)
     _disabled(disable)
+    for name, value in (("noise_file", noise_file), ("spread_scale", spread_scale)):
+        if value is not None:  # a number was pathlib's TypeError; "" read the current directory as the file
+            path_argument(name, value)
+    if robust is not None and not isinstance(robust, Mapping):
+        raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
+                         f"SPEC), got {type(robust).__name__}")  # a str was "dictionary update sequence element #0"
     out = prepare_output_dir(out, overwrite, "result", inputs=(run,))
     scale = None
     if spread_scale is not None:

@@ -340,3 +340,19 @@ def test_particles_npz_of_the_wrong_dtype_or_no_particles_is_located(change: str
         warnings.simplefilter("error")
         with pytest.raises(InputError, match=r"particles\.npz: column 'xyz_m': must be a float array"):
             read_result(result)
+
+
+@pytest.mark.parametrize(("kwargs", "says"), [
+    ({"noise_file": 5}, "noise_file must be a path"),           # pathlib's TypeError, naming no argument
+    ({"noise_file": ""}, "noise_file must be a path"),          # read the current directory as the noise file
+    ({"spread_scale": 3}, "spread_scale must be a path"),       # pathlib's TypeError
+    ({"robust": "conic=cauchy:3"}, "robust must be a dict"),    # "dictionary update sequence element #0 has length 1"
+    ({"disable": None}, "disable must be a list"),              # "'NoneType' object is not iterable"
+    ({"disable": ["bogus"]}, "unknown likelihood switch"),      # refused only after OUT had been created
+])
+def test_track_recording_names_more_bad_arguments_before_any_work(kwargs: dict, says: str, run: Path,
+                                                                   tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    with pytest.raises(ValueError, match=says):
+        track_recording(run, "map", out, progress=False, **kwargs)
+    assert not out.exists()

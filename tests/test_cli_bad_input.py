@@ -971,3 +971,20 @@ def test_import_bag_names_camera_info_for_intrinsics_out_of_range(index: int, ke
     line = _one_error_line(capsys.readouterr().err)
     assert str(bag) in line and "'/camera/camera_info'" in line and key in line and "out of range" in line
     assert not out.exists()
+
+
+@pytest.mark.parametrize("method", ["", "svn"])
+@pytest.mark.parametrize("command", ["evaluate", "calibrate-spread"])
+def test_a_hand_edited_result_method_is_located(method: str, command: str, map_result: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """``"method": ""`` or ``"svn"`` in a map result's result.json was evaluated (and given svn's spread factors) as
+    that method, exit 0 ("no method could be fitted (: q95_trans_m ..." from calibrate-spread)."""
+    result = tmp_path / "res"
+    shutil.copytree(map_result, result)
+    doc = json.loads((result / "result.json").read_text())
+    doc["method"] = method
+    (result / "result.json").write_text(json.dumps(doc))
+    out = tmp_path / ("ev" if command == "evaluate" else "scale.json")
+    assert main([command, str(result), "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(result / "result.json") in line and "'method'" in line

@@ -66,6 +66,11 @@ def _read_info(root: Path) -> dict:
         if not isinstance(v, allowed) or (bool not in allowed and isinstance(v, bool)):
             names = " or ".join("null" if t is type(None) else t.__name__ for t in allowed)
             raise InputError(f"must be {names}, got {json_shown(v)}", file=path, column=key)
+    method, recorded = doc["method"], doc["settings"].get("method", doc["method"])
+    if not method.strip() or method != recorded:  # hand-edited: evaluated, and spread-scaled, as another method
+        why = ("must not be empty" if not method.strip()
+               else f"is {method!r} but settings.method is {json_shown(recorded)}")
+        raise InputError(why, file=path, column="method")
     if doc["format"] != RESULT_FORMAT:
         raise InputError(f"must be {RESULT_FORMAT!r}, got {json_shown(doc['format'])}", file=path, column="format")
     if doc["version"] != RESULT_VERSION:

@@ -346,6 +346,10 @@ def _orient_corners(
 #: findChessboardCorners flag sets tried in turn. CALIB_CB_FAST_CHECK is not used: it rejects
 #: valid boards seen 65-70° off face-on.
 _DETECT_FLAGS = (0, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+#: Fewest pixels per square (plus one square of margin on each side) an image side must offer for a detection to be
+#: tried: a smaller image cannot show the board, and below 15 px OpenCV's adaptive threshold failed an assertion
+#: (``blockSize % 2 == 1 && blockSize > 1``: a cv2.error traceback from ``groundtruth`` on a run of tiny images).
+MIN_PX_PER_SQUARE = 4
 
 
 def detect_board_corners(
@@ -357,10 +361,13 @@ def detect_board_corners(
     with or without a board; then, if that fails, with adaptive thresholding and
     normalisation, ~100 ms, which copes with uneven lighting), refined by
     ``cv2.cornerSubPix`` with a window of about a third of the projected square, then
-    oriented (see :func:`_orient_corners`).
+    oriented (see :func:`_orient_corners`). An image whose shorter side is under :data:`MIN_PX_PER_SQUARE` px per
+    square of the board's shorter side plus two squares is not searched (None).
     """
     spec = spec or BoardSpec()
     gray = _gray(image)
+    if min(gray.shape[:2]) < MIN_PX_PER_SQUARE * (min(spec.squares_x, spec.squares_y) + 2):
+        return None  # too small to show the board (MIN_PX_PER_SQUARE)
     found, corners = False, None
     for flags in _DETECT_FLAGS:
         found, corners = cv2.findChessboardCorners(gray, spec.pattern_size, flags=flags)

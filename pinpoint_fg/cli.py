@@ -76,6 +76,16 @@ def _int_at_least(low: int, high: int | None = None):
 
 
 _count = _int_at_least(1)
+
+
+def _particles(text: str) -> int:
+    """An argparse type: a particle count in [1, MAX_PARTICLES], the most a result holds (``--particles 1e11`` was
+    NumPy's 11.6 TiB MemoryError traceback after the run had been read)."""
+    from pinpoint_fg.io.result.particles import MAX_PARTICLES
+
+    return _int_at_least(1, MAX_PARTICLES)(text)
+
+
 _seed = _int_at_least(0, MAX_SEED)
 #: Most worker processes ``--jobs`` accepts (each holds a tracker and its own interpreter: ~150 MB).
 MAX_JOBS = 64
@@ -345,7 +355,7 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="a running Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)")
     s.add_argument("--workers", type=_jobs, default=2, help="worker processes of the local cluster")
-    s.add_argument("--particles", type=_count, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
+    s.add_argument("--particles", type=_particles, default=None, help="default: 50 (svn, svgd), 3000 (pf)")
     s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
@@ -384,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("track", help="track the needle through a recorded run")
     s.add_argument("run", type=Path)
     s.add_argument("--method", choices=METHODS, default="svn")
-    s.add_argument("--particles", type=_count, default=None,
+    s.add_argument("--particles", type=_particles, default=None,
                    help="default: 50 (svn, svgd), 3000 (pf); mht: the bank size K (4)")
     s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
@@ -498,6 +508,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted; finished frames are on disk", file=sys.stderr)
         return 130
+    except MemoryError as exc:
+        # more frames, particles or a longer window than the machine holds (`simulate --frames 1e11` was NumPy's
+        # "Unable to allocate 745. GiB" traceback): one line; what was written before it stays on disk
+        print(f"error: out of memory: {exc or 'MemoryError'} (ask for fewer frames or particles)", file=sys.stderr)
+        return 2
     except BrokenPipeError:
         # the reader of our output went away (e.g. `| head`): not an error of the command. Point
         # stdout at /dev/null so the interpreter's final flush does not raise again.

@@ -63,8 +63,15 @@ def path_argument(name: str, value: object) -> Path:
 def path_list(name: str, value: object) -> list:
     """``value`` as a list, or :class:`InputError` naming ``name`` when it is one path (a ``str``, bytes or
     ``os.PathLike``) where a list of paths is expected: a str was split into one "path" per character
-    (``calibrate_runs("RUN")``: "/: run given twice"), a Path was "'PosixPath' object is not iterable"."""
+    (``calibrate_runs("RUN")``: "/: run given twice"), a Path was "'PosixPath' object is not iterable". Each item
+    must be a path too (:func:`path_argument`)."""
     if isinstance(value, (str, bytes, os.PathLike)):
         raise InputError(f"{name} must be a list of paths, got the single path {os.fsdecode(value)!r} "
                          f"(write [{os.fsdecode(value)!r}])")
-    return list(value)  # type: ignore[call-overload]
+    try:
+        items = list(value)  # type: ignore[call-overload]
+    except TypeError:  # None or a number: was "'NoneType' object is not iterable", naming no argument
+        raise InputError(f"{name} must be a list of paths, got {type(value).__name__}") from None
+    for i, item in enumerate(items):  # None inside: pathlib's "expected str, bytes or os.PathLike" TypeError
+        path_argument(f"{name}[{i}]", item)
+    return items

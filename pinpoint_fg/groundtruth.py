@@ -7,7 +7,9 @@ and the needle pose follows from the fixed, measured mount transform::
 
 The run's ``gt_*`` columns are then rewritten with these poses
 (:func:`pinpoint_fg.io.recording.replace_ground_truth`): a frame without an image or without
-a detection gets empty gt cells, so afterwards every gt cell of the run is checkerboard-derived.
+a detection gets empty gt cells, so afterwards every gt cell of the run is checkerboard-derived. When the
+board is detected in no image at all (a wrong board size, images without the board) nothing is rewritten:
+an :class:`~pinpoint_fg.errors.InputError` names the board of the ``board_to_needle`` file instead.
 When the run already had ground truth (the simulator writes it), the checkerboard poses
 are compared with it first and the comparison is part of the returned statistics.
 
@@ -237,8 +239,8 @@ class GroundTruthStats:
 def groundtruth_run(run: str | Path, board_to_needle: str | Path) -> GroundTruthStats:
     """Rewrite a run's ``gt_*`` columns from the checkerboard in its images (module docstring).
 
-    Raises :class:`InputError` for an unreadable run or transform file, and when no frame
-    of the run has an image.
+    Raises :class:`InputError` for an unreadable run or transform file, when no frame
+    of the run has an image, and when the board is detected in none of them (the run is left unchanged).
     """
     from pinpoint_fg.io.recording.reader import read_recording
     from pinpoint_fg.io.recording.writer import replace_ground_truth
@@ -266,8 +268,13 @@ def groundtruth_run(run: str | Path, board_to_needle: str | Path) -> GroundTruth
             compared.append(int(rec.frame))
             t_err.append(1e3 * float(np.linalg.norm(cam_T_needle[:3, 3] - old[:3, 3])))
             r_err.append(math.degrees(float(np.linalg.norm(so3_log(old[:3, :3].T @ cam_T_needle[:3, :3])))))
-    replace_ground_truth(run, gt_by_frame)
     detected = sum(v is not None for v in gt_by_frame.values())
+    if detected == 0:  # rewriting would empty every gt cell of the run (a wrong board size wiped the truth, exit 0)
+        raise InputError(
+            f"the {spec.squares_x} x {spec.squares_y} checkerboard of {spec.square_m * 1e3:g} mm squares was found "
+            f"in none of the run's {len(with_image)} images; {Path(run) / 'frames.csv'} is left unchanged "
+            "(is the board size right?)", file=Path(board_to_needle), column="board")
+    replace_ground_truth(run, gt_by_frame)
     return GroundTruthStats(
         run=Path(run),
         frames=len(recording.frames),

@@ -12,6 +12,7 @@ wall time stays close to the sum of the step latencies (README, *Latency*).
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import replace
 from pathlib import Path
@@ -26,6 +27,7 @@ from pinpoint_fg.io.jsonfile import INT64_MAX
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
+from pinpoint_fg.io.result.particles import MAX_PARTICLES
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.io.spread_scale import SpreadScale, scaled_cov_xi, settings_entry
 from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
@@ -46,16 +48,22 @@ def _whole(name: str, value: object, low: int, high: int = MAX_SEED) -> int:
     """``value`` as an int in ``[low, high]``, else ValueError naming it: a float is refused, not truncated
     (``particles=10.5`` tracked with 10), and NumPy's "expected non-negative integer" named no argument."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= int(value) <= high:
-        where = f"in [{low}, {high}]" if name == "seed" else f">= {low}"
+        where = f"in [{low}, {high}]" if name in ("seed", "particles") else f">= {low}"
         raise ValueError(f"{name} must be a whole number {where}, got {value!r}")
     return int(value)
 
 
 def _disabled(disable: object) -> tuple[str, ...]:
-    """``disable`` as a tuple of switch names; a single string was split into its letters (``"tip"``: t, i, p)."""
+    """``disable`` as a tuple of known switch names; a single string was split into its letters (``"tip"``: t, i,
+    p), None was "'NoneType' object is not iterable", and an unknown name was refused only after ``out`` existed."""
     if isinstance(disable, str):
         raise ValueError(f"disable must be a list of switch names, got the string {disable!r} (write [{disable!r}])")
-    return tuple(disable)  # type: ignore[arg-type]
+    try:
+        names = tuple(disable)  # type: ignore[arg-type]
+    except TypeError:
+        raise ValueError(f"disable must be a list of switch names, got {type(disable).__name__}") from None
+    Switches.from_disabled(names)  # ValueError naming the unknown ones and the choices
+    return names
 
 
 def make_tracker(method: str, config: TrackerConfig) -> Tracker:
@@ -170,8 +178,16 @@ def track_recording(
     for name, value, low in (("particles", particles, 1), ("window", window, 1), ("seed", seed, 0),
                              ("max_frames", max_frames, 1), ("blas_threads", blas_threads, 1)):
         if value is not None or name in ("window", "seed"):
-            _whole(name, value, low)  # max_frames=-1 tracked all frames but the last (a slice), silently
+            # max_frames=-1 tracked all frames but the last (a slice), silently; particles beyond what a result
+            # holds were NumPy's MemoryError traceback after the run had been read
+            _whole(name, value, low, MAX_PARTICLES if name == "particles" else MAX_SEED)
     _disabled(disable)
+    for name, value in (("noise_file", noise_file), ("spread_scale", spread_scale)):
+        if value is not None:  # a number was pathlib's TypeError; "" read the current directory as the file
+            path_argument(name, value)
+    if robust is not None and not isinstance(robust, Mapping):
+        raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
+                         f"SPEC), got {type(robust).__name__}")  # a str was "dictionary update sequence element #0"
     out = prepare_output_dir(out, overwrite, "result", inputs=(run,))
     scale = None
     if spread_scale is not None:
@@ -189,11 +205,12 @@ def track_recording(
 
 def _numerical_failure(exc: Exception) -> bool:
     """True for a tracker's numerical breakdown on degenerate input, reported as one line instead of a traceback:
-    GTSAM's indeterminate linear system (a ``RuntimeError``) or non-finite numbers the result writer refuses."""
+    GTSAM's indeterminate linear system (a ``RuntimeError``), or non-finite numbers or a pose beyond the format's
+    reach (a diverged estimate) that the result writer refuses."""
     text = str(exc)
     if isinstance(exc, RuntimeError):
         return "Indeterminate linear system" in text
-    return "NaN" in text or "infinite" in text
+    return "NaN" in text or "infinite" in text or "beyond the result format's" in text
 
 
 def _first_line(exc: Exception) -> str:

@@ -152,6 +152,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ({"disable": "tip"}, "disable"),          # split into the switches 't', 'i', 'p'
     ({"blas_threads": 0}, "blas_threads"),
     ({"method": "bogus"}, "method"),
+    ({"particles": 10**11}, "particles"),     # NumPy's "Unable to allocate 11.6 TiB" MemoryError, after reading the run
 ])
 def test_track_recording_refuses_bad_arguments_before_any_work(kwargs: dict, says: str, run: Path,
                                                                tmp_path: Path) -> None:
@@ -278,3 +279,80 @@ def test_one_path_where_a_list_of_paths_is_expected_is_named(run: Path, tmp_path
             with pytest.raises(InputError, match=f"{name} must be a list of paths, got the single path"):
                 call(one)
     assert not any(tmp_path.iterdir())
+
+
+# --- fourth audit -------------------------------------------------------------------------------------------
+
+def test_notebook_calls_with_none_or_a_number_name_the_argument(run: Path, tmp_path: Path) -> None:
+    """``evaluate_results(None)`` was "'NoneType' object is not iterable", ``[None]`` and ``out=None`` pathlib's
+    "expected str, bytes or os.PathLike object", ``read_modes(None)`` / ``read_modes(3)`` the same: no argument
+    named. Now each is an InputError naming it, before anything is written."""
+    from pinpoint_fg.eval.calibrate import calibrate_runs
+    from pinpoint_fg.eval.report import evaluate_results
+    from pinpoint_fg.io.result.reader import read_modes
+
+    result = track_recording(run, "map", tmp_path / "res", progress=False)
+    with pytest.raises(InputError, match=r"results must be a list of paths, got NoneType"):
+        evaluate_results(None, out=tmp_path / "e")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"results\[1\] must be a path"):
+        evaluate_results([result, None], out=tmp_path / "e")  # type: ignore[list-item]
+    with pytest.raises(InputError, match=r"runs must be a list of paths, got int"):
+        calibrate_runs(5)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"^out must be a path"):
+        evaluate_results([result], out=None)  # type: ignore[arg-type]
+    for bad in (None, 3):
+        with pytest.raises(InputError, match=r"^out_dir must be a path"):
+            read_modes(bad)  # type: ignore[arg-type]
+    assert not (tmp_path / "e").exists()
+    assert read_modes(result).frame.size > 0  # a valid call still reads
+
+
+@pytest.mark.parametrize("side_px", [1, 3, 8, 14, 23])
+def test_detect_board_on_an_image_too_small_for_the_board_is_none(side_px: int) -> None:
+    """An image under 15 px a side was OpenCV's "(-215:Assertion failed) blockSize % 2 == 1 && blockSize > 1" cv2.error
+    (a traceback from ``groundtruth`` on a run of tiny images); an image too small to show the board finds none."""
+    from pinpoint_fg.checkerboard import BoardSpec, detect_board
+
+    camera = PinholeCamera(fx=600.0, fy=600.0, cx=side_px / 2, cy=side_px / 2, width=side_px, height=side_px)
+    rng = np.random.default_rng(side_px)
+    for image in (np.zeros((side_px, side_px), np.uint8), rng.integers(0, 256, (side_px, 640), dtype=np.uint8)):
+        assert detect_board(image, camera, BoardSpec()) is None
+
+
+@pytest.mark.parametrize("change", ["str", "record", "complex", "no particles"])
+def test_particles_npz_of_the_wrong_dtype_or_no_particles_is_located(change: str, run: Path, tmp_path: Path) -> None:
+    """``xyz_m`` saved as strings or a record dtype was NumPy's "ufunc 'isfinite' not supported" TypeError, as complex
+    numbers a ComplexWarning (imaginary parts dropped), and zero particles per frame was read (a "truth kept by
+    some particle" share of 0 %). The other arrays were already required to be float."""
+    import warnings
+
+    result = track_recording(run, "map", tmp_path / "res", progress=False)
+    with np.load(result / "particles.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    xyz = arrays["xyz_m"]
+    arrays["xyz_m"] = {"str": xyz.astype(str), "record": np.zeros(xyz.shape, dtype=[("a", "f8")]),
+                       "complex": xyz.astype(complex), "no particles": xyz[:, :0]}[change]
+    if change == "no particles":
+        for k in ("quat_wxyz", "log_posterior"):
+            arrays[k] = arrays[k][:, :0]
+    np.savez(result / "particles.npz", **arrays)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=r"particles\.npz: column 'xyz_m': must be a float array"):
+            read_result(result)
+
+
+@pytest.mark.parametrize(("kwargs", "says"), [
+    ({"noise_file": 5}, "noise_file must be a path"),           # pathlib's TypeError, naming no argument
+    ({"noise_file": ""}, "noise_file must be a path"),          # read the current directory as the noise file
+    ({"spread_scale": 3}, "spread_scale must be a path"),       # pathlib's TypeError
+    ({"robust": "conic=cauchy:3"}, "robust must be a dict"),    # "dictionary update sequence element #0 has length 1"
+    ({"disable": None}, "disable must be a list"),              # "'NoneType' object is not iterable"
+    ({"disable": ["bogus"]}, "unknown likelihood switch"),      # refused only after OUT had been created
+])
+def test_track_recording_names_more_bad_arguments_before_any_work(kwargs: dict, says: str, run: Path,
+                                                                   tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    with pytest.raises(ValueError, match=says):
+        track_recording(run, "map", out, progress=False, **kwargs)
+    assert not out.exists()

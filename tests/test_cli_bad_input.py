@@ -9,6 +9,7 @@ import errno
 import json
 import os
 import shutil
+import warnings
 import zlib
 from dataclasses import replace
 from pathlib import Path
@@ -256,10 +257,14 @@ class _Breaks:
             return est
         if self.how == "gtsam":  # what GTSAM raised with a principal point 10 images off (cx = -10000)
             raise RuntimeError("\nIndeterminate linear system detected while working near variable\n9 (Symbol: 9).")
+        if self.how == "diverged":  # a pose 10 000 km away: written, it made a result its own reader refuses
+            far = np.array(est.cam_T_needle, dtype=float)
+            far[0, 3] = 1e7
+            return replace(est, cam_T_needle=far)
         return replace(est, log_posterior=np.full_like(np.asarray(est.log_posterior, dtype=float), np.inf))
 
 
-@pytest.mark.parametrize("how", ["gtsam", "nonfinite"])
+@pytest.mark.parametrize("how", ["gtsam", "nonfinite", "diverged"])
 def test_tracker_breakdown_is_one_line_and_keeps_finished_frames(how: str, run: Path, tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
@@ -320,7 +325,8 @@ def test_import_bag_refuses_a_needle_or_tolerance_out_of_range(run: Path, tmp_pa
     needle_file.write_text(json.dumps(needle))
     out = tmp_path / "imported"
     assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(needle_file)]) == 2  # was 0
-    assert "needle.radius_m" in _one_error_line(capsys.readouterr().err)
+    line = _one_error_line(capsys.readouterr().err)
+    assert "radius_m" in line and str(needle_file) in line  # (the fourth audit: was the run's recording.json)
     # was OverflowError: cannot convert float infinity to integer
     assert main(["import-bag", str(bag), "--out", str(tmp_path / "b"), "--needle", str(run / "recording.json"),
                  "--stamp-tolerance-s", "1e308"]) == 2
@@ -753,3 +759,235 @@ def test_out_that_is_the_input_directory_is_refused(command: str, run: Path, map
             line = _one_error_line(capsys.readouterr().err)
             assert str(out) in line and "also an input" in line
     assert sorted(str(p.relative_to(source)) for p in source.rglob("*")) == before
+
+
+# --- fourth audit: groundtruth, damaged results read back, huge counts, --out inside an importer's input -------
+
+@pytest.fixture(scope="module")
+def board_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A simulated run whose images show the ground-truth checkerboard (and which has ground truth)."""
+    out = tmp_path_factory.mktemp("audit4") / "calib"
+    assert main(["simulate", "--scenario", "calibration", "--frames", "3", "--seed", "2", "--images",
+                 "--out", str(out)]) == 0
+    return out
+
+
+def test_groundtruth_that_finds_no_board_keeps_the_runs_ground_truth(board_run: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, a board-to-needle file with the wrong board size (7 x 4 instead of 5 x 4) found the board in none of
+    the images and emptied every gt cell of the run, exit 0 ("no previous ground truth to compare with")."""
+    run = tmp_path / "run"
+    shutil.copytree(board_run, run)
+    before = (run / "frames.csv").read_bytes()
+    b2n = write_board_to_needle(tmp_path / "b2n.json")
+    doc = json.loads(b2n.read_text())
+    doc["board"]["squares_x"] = 7
+    b2n.write_text(json.dumps(doc))
+    assert main(["groundtruth", str(run), "--board-to-needle", str(b2n)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(b2n) in line and "'board'" in line and "none of the run's 3 images" in line
+    assert (run / "frames.csv").read_bytes() == before
+    # the right board still rewrites the gt columns
+    assert main(["groundtruth", str(run), "--board-to-needle", str(write_board_to_needle(tmp_path / "ok.json"))]) == 0
+    assert "board detected in 3" in capsys.readouterr().out
+
+
+def _edit_cell(path: Path, row: int, column: str, cell: str) -> None:
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index(column)] = cell
+    lines[row] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+
+
+DAMAGED_RESULTS = [  # file, row, column, cell: each was a traceback of `evaluate` before
+    ("estimates.csv", 2, "x_m", "1e300"),          # LinAlgError "Eigenvalues did not converge" (after warnings)
+    ("smoothed.csv", 2, "z_m", "-1e300"),
+    ("modes.csv", 1, "frame", str(2**63)),         # OverflowError: Python int too large to convert to C long
+    ("modes.csv", 1, "y_m", "1e300"),              # NumPy overflow warnings, then exit 0
+    ("modes.csv", 1, "qw", "1e200"),               # "norm inf" after NumPy's overflow warning
+    ("particles.npz", 2, "xyz_m", "1e300"),
+]
+
+
+@pytest.fixture(scope="module")
+def svn_result(run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An SVN result with every file: estimates, smoothed (L = 2), modes, particles."""
+    out = tmp_path_factory.mktemp("audit4") / "svn"
+    assert main(["track", str(run), "--method", "svn", "--particles", "8", "--window", "2", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize(("name", "row", "column", "cell"), DAMAGED_RESULTS,
+                         ids=[f"{n}:{c}={v}" for n, _, c, v in DAMAGED_RESULTS])
+def test_a_damaged_result_is_located_not_a_traceback(name: str, row: int, column: str, cell: str, svn_result: Path,
+                                                      tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    if name == "particles.npz":
+        with np.load(result / name) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays[column][row - 1, 0, 0] = float(cell)
+        np.savez(result / name, **arrays)
+    else:
+        _edit_cell(result / name, row, column, cell)
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # on the command line, NumPy's warning was a second line
+        assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(result / name) in line and f"row {row}" in line and repr(column) in line
+
+
+@pytest.mark.parametrize("command", ["track", "batch"])
+def test_a_particle_count_no_result_can_hold_is_a_usage_error(command: str, run: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """``--particles 100000000000`` was accepted, the run read, then NumPy's "Unable to allocate 11.6 TiB" traceback;
+    a result's reader takes at most 10 million particles (its journal check)."""
+    with pytest.raises(SystemExit) as exc:
+        main([command, str(run), "--method", "pf", "--particles", "100000000000", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert "--particles" in _one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_running_out_of_memory_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``simulate --frames 100000000000`` was NumPy's "Unable to allocate 745. GiB" traceback (exit 1)."""
+    assert main(["simulate", "--scenario", "normal", "--frames", "100000000000", "--out", str(tmp_path / "s")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line.startswith("error: out of memory") and "fewer frames" in line
+
+
+@pytest.mark.parametrize("command", ["import-bag", "import-bop", "batch", "ablate"])
+def test_out_that_is_an_importers_or_pools_input_is_refused(command: str, run: Path, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Before, ``import-bag BAG --out BAG --overwrite`` wrote recording.json, frames.csv and masks/ into the ROS 2 bag
+    directory, ``import-bop SCENE --out SCENE --overwrite`` the run into the BOP scene, ``batch RUN --out RUN
+    --overwrite`` (and ``ablate``) results into the recording (exit 0): two directories' files mixed. As for
+    ``track`` and ``evaluate``: refused with or without --overwrite, before any work, the input left as it was."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    if command == "import-bag":
+        source = tmp_path / "bag"
+        assert main(["export-bag", str(run), "--out", str(source)]) == 0
+        argv = ["import-bag", str(source), "--needle", str(run / "recording.json")]
+    elif command == "import-bop":
+        info = write_bop_scene(tmp_path / "dataset", n_images=2)
+        source = Path(info["scene"])
+        argv = ["import-bop", str(source), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID)]
+    else:
+        source = tmp_path / "run"
+        shutil.copytree(run, source)
+        argv = [command, str(source), *(["--method", "pf", "--workers", "1"] if command == "batch" else [])]
+    capsys.readouterr()
+    before = sorted(str(p.relative_to(source)) for p in source.rglob("*"))
+    for overwrite in ([], ["--overwrite"]):
+        assert main([*argv, "--out", str(source), *overwrite]) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert str(source) in line and "also an input" in line
+    assert sorted(str(p.relative_to(source)) for p in source.rglob("*")) == before
+
+
+@pytest.mark.parametrize(("key", "value"), [("radius_m", 1e308), ("wire_diameter_m", 2.0), ("tip_angle_rad", -1e9)])
+def test_import_bag_names_the_needle_file_for_a_needle_out_of_range(key: str, value: float, run: Path, tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """A NEEDLE.json with ``radius_m: 1e308`` was blamed on the run being written ("OUT/recording.json: column
+    'needle.radius_m'"), after the whole bag had been read; now the needle file and its key are named first."""
+    bag = tmp_path / "bag"
+    assert main(["export-bag", str(run), "--out", str(bag)]) == 0
+    doc = json.loads((run / "recording.json").read_text())["needle"]
+    doc[key] = value
+    needle = tmp_path / "needle.json"
+    needle.write_text(json.dumps(doc))
+    capsys.readouterr()
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(needle)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line.startswith(f"error: {needle}: column {key!r}: out of range")
+    assert not out.exists()
+
+
+def test_import_bop_corrupt_png_mask_is_one_line(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """A BOP mask PNG cut after its signature: OpenCV printed "[ERROR:0@...] global grfmt_png.cpp ... readHeader IHDR
+    chunk shall be first" on stderr before our line. The PNG's structure is now checked before OpenCV sees it, as a
+    recording's PNGs are (pinpoint_fg.io.recording.png)."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=2)
+    mask = Path(info["scene"]) / "mask_visib" / "000001_000001.png"
+    mask.write_bytes(mask.read_bytes()[:12])
+    capfd.readouterr()
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(tmp_path / "run")]) == 2
+    err = capfd.readouterr().err  # the file descriptor: OpenCV writes past sys.stderr
+    assert len([s for s in err.splitlines() if s.strip()]) == 1, err
+    line = _one_error_line(err)
+    assert str(mask) in line and "not a readable image" in line
+
+
+@pytest.mark.parametrize(("index", "key"), [(0, "camera.fx"), (2, "camera.cx")])
+def test_import_bop_names_scene_camera_for_intrinsics_out_of_range(index: int, key: str, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """``cam_K`` with fx = 1e300 (or cx = 1e12) was blamed on the run being written ("OUT/recording.json: column
+    'camera.fx'") and left OUT behind; now scene_camera.json and its key are named before anything is written."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=2)
+    cameras = Path(info["scene"]) / "scene_camera.json"
+    doc = json.loads(cameras.read_text())
+    for entry in doc.values():
+        entry["cam_K"][index] = 1e300 if index == 0 else 1e12
+    cameras.write_text(json.dumps(doc))
+    out = tmp_path / "run"
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(cameras) in line and "'0.cam_K'" in line and key in line and "out of range" in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("index", "key"), [(0, "camera.fx"), (2, "camera.cx")])
+def test_import_bag_names_camera_info_for_intrinsics_out_of_range(index: int, key: str, run: Path, tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """A camera_info whose K has fx = 1e300 (or cx = 1e12) was blamed on OUT/recording.json and left a half-written
+    run behind; now the bag and its camera_info topic are named, before anything is written."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    good = tmp_path / "good.bag"
+    assert main(["export-bag", str(run), "--out", str(good), "--format", "ros1"]) == 0
+    bag = tmp_path / "bad.bag"
+    with AnyReader([good]) as reader, Writer(bag) as writer:
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=reader.typestore)
+                 for c in reader.connections}
+        for conn, stamp, raw in reader.messages():
+            if conn.topic == "/camera/camera_info":
+                msg = reader.deserialize(raw, conn.msgtype)
+                msg.K = msg.K.copy()  # ROS 1 spells it K; deserialised read-only
+                msg.K[index] = 1e300 if index == 0 else 1e12
+                raw = reader.typestore.serialize_ros1(msg, conn.msgtype)
+            writer.write(conns[conn.id], stamp, raw)
+    capsys.readouterr()
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(run / "recording.json")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bag) in line and "'/camera/camera_info'" in line and key in line and "out of range" in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("method", ["", "svn"])
+@pytest.mark.parametrize("command", ["evaluate", "calibrate-spread"])
+def test_a_hand_edited_result_method_is_located(method: str, command: str, map_result: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """``"method": ""`` or ``"svn"`` in a map result's result.json was evaluated (and given svn's spread factors) as
+    that method, exit 0 ("no method could be fitted (: q95_trans_m ..." from calibrate-spread)."""
+    result = tmp_path / "res"
+    shutil.copytree(map_result, result)
+    doc = json.loads((result / "result.json").read_text())
+    doc["method"] = method
+    (result / "result.json").write_text(json.dumps(doc))
+    out = tmp_path / ("ev" if command == "evaluate" else "scale.json")
+    assert main([command, str(result), "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(result / "result.json") in line and "'method'" in line

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from pinpoint_fg.errors import InputError, path_list
+from pinpoint_fg.errors import InputError, path_argument, path_list
 from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
@@ -717,7 +717,7 @@ def evaluate_results(
     results = expand_result_dirs(path_list("results", results))
     if not results:
         raise InputError("no results to evaluate")
-    out = Path(out)
+    out = path_argument("out", out)  # None was pathlib's TypeError, naming no argument
     out.mkdir(parents=True, exist_ok=True)
     say = progress or (lambda _msg: None)
     given = read_recording(recording) if recording is not None else None

@@ -88,8 +88,15 @@ from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.io.recording.schema import QUAT_NORM_TOL, FrameRecord, Recording, RecordingInfo
-from pinpoint_fg.io.recording.writer import RecordingWriter, frame_cells
+from pinpoint_fg.io.recording.schema import (
+    MAX_ABS_ANGLE_RAD,
+    MAX_NEEDLE_M,
+    QUAT_NORM_TOL,
+    FrameRecord,
+    Recording,
+    RecordingInfo,
+)
+from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info, frame_cells
 
 #: recording.json key holding what a bag import knows beyond the format (time origin, frame id).
 ROS_BAG_KEY = "ros_bag"
@@ -179,8 +186,9 @@ class BagImportSummary:
 def read_needle_json(path: str | Path) -> NeedleModel:
     """The needle of ``NEEDLE.json``: the ``needle`` object of recording.json, or a whole recording.json.
 
-    Every key of the needle object is required and a finite number (``radius_m`` and
-    ``wire_diameter_m`` > 0); unknown keys are ignored. Errors name the file and the key.
+    Every key of the needle object is required and a finite number within the recording format's bounds
+    (``radius_m`` and ``wire_diameter_m`` in (0, :data:`MAX_NEEDLE_M`], angles within ±:data:`MAX_ABS_ANGLE_RAD`);
+    unknown keys are ignored. Errors name the file and the key.
     """
     path = Path(path)
     try:
@@ -205,6 +213,11 @@ def read_needle_json(path: str | Path) -> NeedleModel:
         v = doc[key]
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
             raise InputError(f"must be a finite number, got {json.dumps(v)}", file=path, column=prefix + key)
+        # the recording format's bounds, named here: beyond them the run's own recording.json was blamed at writing
+        low, high = (0.0, MAX_NEEDLE_M) if key in ("radius_m", "wire_diameter_m") else (-MAX_ABS_ANGLE_RAD,
+                                                                                       MAX_ABS_ANGLE_RAD)
+        if not low <= v <= high:
+            raise InputError(f"out of range: {v:g} (accepted {low:g} .. {high:g})", file=path, column=prefix + key)
         values[key] = float(v)
     try:
         return NeedleModel(**values)
@@ -435,7 +448,7 @@ def import_bag(
     if not math.isfinite(stamp_tolerance_s) or not 0 <= stamp_tolerance_s <= 1e9:  # 1e308 overflowed the ns
         raise InputError(f"must be a finite number in [0, 1e9], got {stamp_tolerance_s}", column="--stamp-tolerance-s")
     needle_model = needle if isinstance(needle, NeedleModel) else read_needle_json(needle)
-    check_output_dir(out, overwrite, "run")
+    check_output_dir(out, overwrite, "run", inputs=(bag,))  # a ROS 2 bag is a directory
     data, cam = _read_bag(bag, topics)
 
     ci = data["camera_info"]
@@ -500,6 +513,12 @@ def import_bag(
         camera=camera, needle=needle_model,
         extra={ROS_BAG_KEY: {"time_origin_ns": origin, "camera_frame_id": frame_id}},
     )
+    try:  # before anything is written; the camera's values came from the bag's camera_info: name that topic
+        check_recording_info(info, out / "recording.json")
+    except InputError as exc:
+        if not str(exc.column).startswith("camera"):
+            raise
+        raise InputError(f"{exc.reason} ({exc.column})", file=bag, column=ci.topic) from None
 
     def pick(role: str, k: int) -> Any:
         idx = picks.get(role)
@@ -521,7 +540,7 @@ def import_bag(
             raise InputError(f"{exc.reason} ({exc.column})", file=bag,
                              column=data[role].topic if role in data else exc.column) from None
         records.append(rec)
-    prepare_output_dir(out, overwrite, "run")
+    prepare_output_dir(out, overwrite, "run", inputs=(bag,))
     with RecordingWriter(out, info) as writer:
         for k, rec in enumerate(records):
             mask = pick("mask", k)

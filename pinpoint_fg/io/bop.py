@@ -61,8 +61,9 @@ from factors.lie import homogeneous
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
+from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
 from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
-from pinpoint_fg.io.recording.writer import RecordingWriter
+from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info
 
 SCENE_CAMERA = "scene_camera.json"
 SCENE_GT = "scene_gt.json"
@@ -261,7 +262,16 @@ def _find_image(scene: Path, im: int) -> Path:
 def _read(path: Path, flags: int, size: tuple[int, int] | None) -> np.ndarray:
     if not path.is_file():
         raise InputError("file not found", file=path)
-    img = cv2.imread(str(path), flags)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror or exc}", file=path) from None
+    if data.startswith(PNG_SIGNATURE):
+        try:  # a corrupt PNG made OpenCV print its own "[ERROR] ... readHeader" line before ours
+            check_png(data)
+        except ValueError as exc:
+            raise InputError(f"not a readable image: {exc}", file=path) from None
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags) if data else None
     if img is None:
         raise InputError("not a readable image", file=path)
     if size is not None and (img.shape[1], img.shape[0]) != size:
@@ -324,7 +334,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     _check_config(cfg)
     if not scene.is_dir():
         raise InputError("not a directory (the BOP scene)", file=scene)
-    check_output_dir(out, overwrite, "run")
+    check_output_dir(out, overwrite, "run", inputs=(scene,))
     fit = fit_needle_mesh(read_ply_vertices(model_path, cfg.model_units), tip_end=cfg.tip_end, source=model_path)
     try:
         needle = fit.needle_model(cfg.grasp_angle_rad)
@@ -371,9 +381,15 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     }}
     info = RecordingInfo(name=cfg.name or scene.resolve().name, frame_rate_hz=float(cfg.fps), camera=camera,
                          needle=needle, extra=extra)
+    try:  # before anything is written; the camera's values came from scene_camera.json: name it
+        check_recording_info(info, out / "recording.json")
+    except InputError as exc:
+        if not str(exc.column).startswith("camera"):
+            raise
+        raise InputError(f"{exc.reason} ({exc.column})", file=scene / SCENE_CAMERA, column=f"{ids[0]}.cam_K") from None
     rng = np.random.default_rng(cfg.seed)
     n_gt = n_mask = n_kp = 0
-    prepare_output_dir(out, overwrite, "run")
+    prepare_output_dir(out, overwrite, "run", inputs=(scene,))
     with RecordingWriter(out, info) as writer:
         for im in ids:
             gt = gts.get(im)

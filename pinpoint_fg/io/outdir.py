@@ -76,9 +76,14 @@ def _broken_link(p: Path) -> str | None:
     return None
 
 
-def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str) -> Path:
+def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
+                     inputs: Sequence[str | os.PathLike] = ()) -> Path:
     """The checks of :func:`prepare_output_dir` without creating anything (for commands that read and
     validate all their input first and must leave nothing behind when it is bad)."""
+    same = _same_dir(path, inputs)
+    if same is not None:
+        raise InputError(f"--out is also an input of this command; write the {what} to a directory of its own",
+                         file=_short(path))
     p = _usable(path, what)
     try:
         if p.exists() or p.is_symlink():
@@ -116,11 +121,7 @@ def prepare_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     ``overwrite``, for a path that is one of the command's input directories ``inputs`` (a result written
     into its own recording, or an evaluation into a result it reads, would mix two directories' files).
     """
-    same = _same_dir(path, inputs)
-    if same is not None:
-        raise InputError(f"--out is also an input of this command; write the {what} to a directory of its own",
-                         file=_short(path))
-    p = check_output_dir(path, overwrite, what)
+    p = check_output_dir(path, overwrite, what, inputs)
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

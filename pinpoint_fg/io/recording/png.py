@@ -13,7 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: The eight bytes every PNG file starts with.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> samples per pixel
 _PNG_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
 #: Adam7 passes: (x start, y start, x step, y step).
@@ -107,10 +108,10 @@ def png_size(data: bytes) -> tuple[int, int]:
 
 def _png_chunks(data: bytes) -> tuple[int, int, int, int, bool, list[memoryview]]:
     """Structural walk: ``(width, height, bit depth, colour type, interlaced, IDAT payloads)``."""
-    if not data.startswith(_PNG_SIGNATURE):
+    if not data.startswith(PNG_SIGNATURE):
         raise ValueError("not a PNG file (bad signature)")
     view = memoryview(data)
-    pos, n = len(_PNG_SIGNATURE), len(data)
+    pos, n = len(PNG_SIGNATURE), len(data)
     size: tuple[int, int] | None = None
     idat: list[memoryview] = []
     while True:
@@ -159,7 +160,7 @@ def image_file_problem(path: Path, width: int | None, height: int | None, png_on
         return f"cannot read {path}: {exc.strerror or exc}"
     if not data:
         return f"{path}: empty file (0 bytes)"  # cv2.imdecode raises on an empty buffer instead of returning None
-    if data.startswith(_PNG_SIGNATURE):
+    if data.startswith(PNG_SIGNATURE):
         try:
             w, h = check_png(data, None if width is None or height is None else (width, height), inflate)
         except ValueError as exc:
@@ -187,7 +188,7 @@ def decode_image(path: Path, width: int | None, height: int | None, png_only: bo
         raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
     if not data:
         raise ValueError(f"{path}: empty file (0 bytes)")
-    if data.startswith(_PNG_SIGNATURE):
+    if data.startswith(PNG_SIGNATURE):
         try:
             check_png(data, None if width is None or height is None else (width, height))
         except ValueError as exc:

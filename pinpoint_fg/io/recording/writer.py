@@ -162,6 +162,13 @@ def _check_info_doc(doc: dict[str, Any], target: Path) -> None:
         raise InputError(errors[0].reason, file=target, column=errors[0].column)
 
 
+def check_recording_info(info: RecordingInfo, target: Path) -> None:
+    """:class:`InputError` naming ``target`` and the key when the reader would refuse ``info`` as recording.json
+    (:func:`_check_info_doc`); nothing is written. Importers call it before they create their output, to name
+    their own input instead (a bag's camera_info with fx = 1e300 left a half-written run behind)."""
+    _check_info_doc(_info_to_json(info), target)
+
+
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same directory and ``os.replace``."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

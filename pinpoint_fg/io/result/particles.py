@@ -22,6 +22,7 @@ from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.recording.schema import QUAT_NORM_TOL, shown
 from pinpoint_fg.io.result.schema import (
+    MAX_ABS_RESULT_METRES,
     PARTICLES_JOURNAL,
     PARTICLES_NPZ,
     ParticleHistory,
@@ -153,8 +154,13 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
         raise InputError(msg, file=path, column="frame")
     F = frame.shape[0]
     xyz = arrays["xyz_m"]
-    if xyz.ndim != 3 or xyz.shape[0] != F or xyz.shape[2] != 3:
-        raise InputError(f"must have shape (F={F}, N, 3), got {xyz.shape}", file=path, column="xyz_m")
+    # a float array like the others (strings or a record dtype were NumPy's isfinite TypeError, complex numbers
+    # a ComplexWarning and their imaginary part dropped); at least one particle, as the writer and the journal have
+    # (a result without frames is written with N = 0)
+    if xyz.ndim != 3 or xyz.shape[0] != F or xyz.shape[2] != 3 or (F > 0 and xyz.shape[1] < 1) \
+            or not np.issubdtype(xyz.dtype, np.floating):
+        raise InputError(f"must be a float array of shape (F={F}, N >= 1, 3), got {xyz.dtype} {xyz.shape}", file=path,
+                         column="xyz_m")
     N = xyz.shape[1]
     shapes = {"quat_wxyz": (F, N, 4), "log_posterior": (F, N), "weight": (F, N)}
     for k in keys[2:]:
@@ -176,6 +182,10 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
     ):
         if np.any(bad):
             raise InputError("contains NaN or infinite values", file=path, row=first_bad(bad), column=k)
+    bad = np.abs(xyz) > MAX_ABS_RESULT_METRES
+    if np.any(bad):
+        raise InputError(f"a position lies beyond the result format's {MAX_ABS_RESULT_METRES:g} m of the camera",
+                         file=path, row=first_bad(bad), column="xyz_m")
     # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
     norm = np.sqrt(np.sum(np.square(np.clip(arrays["quat_wxyz"], -2.0, 2.0)), axis=-1))
     bad = np.abs(norm - 1.0) > QUAT_NORM_TOL

@@ -26,6 +26,7 @@ from pinpoint_fg.io.result.schema import (
     COV_INDICES,
     ESTIMATE_COLUMNS,
     ESTIMATES_CSV,
+    MAX_ABS_RESULT_METRES,
     MAX_MODES,
     MODE_COLUMNS,
     MODE_WEIGHT_SUM_TOL,
@@ -65,6 +66,11 @@ def _read_info(root: Path) -> dict:
         if not isinstance(v, allowed) or (bool not in allowed and isinstance(v, bool)):
             names = " or ".join("null" if t is type(None) else t.__name__ for t in allowed)
             raise InputError(f"must be {names}, got {json_shown(v)}", file=path, column=key)
+    method, recorded = doc["method"], doc["settings"].get("method", doc["method"])
+    if not method.strip() or method != recorded:  # hand-edited: evaluated, and spread-scaled, as another method
+        why = ("must not be empty" if not method.strip()
+               else f"is {method!r} but settings.method is {json_shown(recorded)}")
+        raise InputError(why, file=path, column="method")
     if doc["format"] != RESULT_FORMAT:
         raise InputError(f"must be {RESULT_FORMAT!r}, got {json_shown(doc['format'])}", file=path, column="format")
     if doc["version"] != RESULT_VERSION:
@@ -122,6 +128,20 @@ def _num(path: Path, r: int, column: str, cell: str, allow_nan: bool) -> float:
     raise InputError(f"not a {what}: {shown(cell)}", file=path, row=r, column=column)
 
 
+def _check_xyz(path: Path, r: int, xyz: np.ndarray) -> None:
+    """A row's position (x_m, y_m, z_m) within :data:`MAX_ABS_RESULT_METRES` of the camera."""
+    for c, x in zip(POSE_COLUMNS[:3], xyz, strict=False):
+        if abs(x) > MAX_ABS_RESULT_METRES:
+            raise InputError(f"{float(x)!r} m is beyond the result format's {MAX_ABS_RESULT_METRES:g} m of the camera",
+                             file=path, row=r, column=c)
+
+
+def _quat_norm(q: np.ndarray) -> float:
+    """Norm of a quaternion whose components are clipped to ±2 (a unit one's are within ±1): huge cells cannot
+    overflow (``1e200`` was "norm inf" after NumPy's overflow warning)."""
+    return float(np.sqrt(np.sum(np.square(np.clip(q, -2.0, 2.0)))))
+
+
 def _int(path: Path, r: int, column: str, cell: str) -> int:
     """A non-negative integer cell that fits int64 (frame indices, iterations)."""
     if not _INTEGER.fullmatch(cell):
@@ -153,9 +173,8 @@ def _parse_frames_and_poses(
         t_s[r - 1] = _num(path, r, "t_s", cells[idx["t_s"]], allow_nan=False)
         for j, c in enumerate(POSE_COLUMNS):
             vals[r - 1, j] = _num(path, r, c, cells[idx[c]], allow_nan=False)
-        q = vals[r - 1, 3:]
-        # components clipped to ±2 (a unit quaternion's are within ±1): huge cells cannot overflow
-        norm = float(np.sqrt(np.sum(np.square(np.clip(q, -2.0, 2.0)))))
+        _check_xyz(path, r, vals[r - 1, :3])
+        norm = _quat_norm(vals[r - 1, 3:])
         if abs(norm - 1.0) > QUAT_NORM_TOL:
             raise InputError(
                 f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}{'+' if norm >= 2 else ''}; "
@@ -303,7 +322,7 @@ def read_modes(out_dir: str | Path) -> ModeHistory:
     >= -1e-9 times the largest magnitude). For a result whose writer never closed, a torn last line
     and a last frame whose rows are incomplete (weights not summing to 1) are dropped.
     """
-    root = Path(out_dir)
+    root = path_argument("out_dir", out_dir)
     path = root / MODES_CSV
     if not path.exists():
         raise InputError("file not found", file=path)
@@ -318,10 +337,7 @@ def read_modes(out_dir: str | Path) -> ModeHistory:
     cov = np.zeros((M, 6, 6))
     for r, cells in enumerate(rows, start=1):
         for c, arr in (("frame", frame), ("mode", mode)):
-            x = cells[idx[c]]
-            if not _INTEGER.fullmatch(x):
-                raise InputError(f"not a non-negative integer: {x!r}", file=path, row=r, column=c)
-            arr[r - 1] = int(x)
+            arr[r - 1] = _int(path, r, c, cells[idx[c]])  # int() into int64 was an OverflowError beyond it
         f, k = int(frame[r - 1]), int(mode[r - 1])
         if r > 1 and f < frame[r - 2]:
             raise InputError(f"frame {f} is smaller than the previous row's frame {frame[r - 2]}",
@@ -341,9 +357,11 @@ def read_modes(out_dir: str | Path) -> ModeHistory:
         weight[r - 1] = wk
         for j, c in enumerate(POSE_COLUMNS):
             pose[r - 1, j] = _num(path, r, c, cells[idx[c]], allow_nan=False)
-        norm = float(np.linalg.norm(pose[r - 1, 3:]))
+        _check_xyz(path, r, pose[r - 1, :3])
+        norm = _quat_norm(pose[r - 1, 3:])
         if abs(norm - 1.0) > QUAT_NORM_TOL:
-            raise InputError(f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}; it must be 1 within "
+            raise InputError(f"quaternion (qw, qx, qy, qz) has norm {norm:.6g}{'+' if norm >= 2 else ''}; it must "
+                             "be 1 within "
                              f"{QUAT_NORM_TOL:g}", file=path, row=r, column="qw")
         vals = np.array([_num(path, r, c, cells[idx[c]], allow_nan=False) for c in COV_COLUMNS])
         C = np.zeros((6, 6))

@@ -68,6 +68,10 @@ ESTIMATE_COLUMNS = (
 SMOOTHED_COLUMNS = ("frame", "t_s", *POSE_COLUMNS)
 #: Most modes a frame may have in modes.csv.
 MAX_MODES = 4
+#: Largest |x|, |y|, |z| (m) of any pose a result holds (estimates, smoothed, modes, particles). Far beyond any
+#: camera (a diverged tracker's estimate is still written and scored) but bounded: a hand-edited ``1e300`` overflowed
+#: the evaluation's squares (``evaluate``: LinAlgError traceback). The writer refuses what the reader refuses.
+MAX_ABS_RESULT_METRES = 1e6
 #: The 21 upper-triangle covariance columns ``cov_ij`` (0 <= i <= j <= 5) of modes.csv, row by row.
 COV_COLUMNS = tuple(f"cov_{i}{j}" for i in range(6) for j in range(i, 6))
 #: The columns of modes.csv.

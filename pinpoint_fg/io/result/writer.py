@@ -21,6 +21,7 @@ from pinpoint_fg.io.result.schema import (
     COV_INDICES,
     ESTIMATE_COLUMNS,
     ESTIMATES_CSV,
+    MAX_ABS_RESULT_METRES,
     MAX_MODES,
     MODE_COLUMNS,
     MODE_WEIGHT_SUM_TOL,
@@ -73,6 +74,21 @@ def _pose_cells(T: np.ndarray) -> list[str]:
     return [_cell(v) for v in xyz] + [_cell(v) for v in q]
 
 
+def _result_pose(name: str, T: Any) -> np.ndarray:
+    """:func:`check_pose`, and within :data:`MAX_ABS_RESULT_METRES` of the camera (the reader refuses more)."""
+    a = check_pose(name, T)
+    _check_reach(name, a[:3, 3])
+    return a
+
+
+def _check_reach(name: str, xyz: np.ndarray) -> None:
+    """``ValueError`` when a position of ``xyz`` (..., 3) lies beyond :data:`MAX_ABS_RESULT_METRES` of the camera."""
+    reach = float(np.max(np.abs(xyz))) if np.size(xyz) else 0.0
+    if reach > MAX_ABS_RESULT_METRES:
+        raise ValueError(f"{name} lies {reach:.3g} m from the camera, beyond the result format's "
+                         f"{MAX_ABS_RESULT_METRES:g} m (a diverged estimate)")
+
+
 def _scalar(name: str, v: Any, allow_nan: bool) -> float:
     try:
         x = float(v)
@@ -89,7 +105,7 @@ def _check_modes(where: str, modes: Any) -> tuple[Mode, ...]:
     if not 1 <= len(modes) <= MAX_MODES:
         raise ValueError(f"{where}: modes must hold 1 to {MAX_MODES} modes, got {len(modes)}")
     for k, m in enumerate(modes):
-        check_pose(f"{where}: mode {k} cam_T_needle", m.cam_T_needle)
+        _result_pose(f"{where}: mode {k} cam_T_needle", m.cam_T_needle)
         wk = _scalar(f"{where}: mode {k} weight", m.weight, allow_nan=False)
         if not 0.0 <= wk <= 1.0:
             raise ValueError(f"{where}: mode {k} weight must lie in [0, 1], got {wk!r}")
@@ -195,7 +211,7 @@ class ResultWriter:
         if self._last_frame is not None and f <= self._last_frame:
             raise ValueError(f"frame {f} is not greater than the previous frame {self._last_frame}")
         _scalar(f"frame {f}: t_s", est.t_s, allow_nan=False)
-        check_pose(f"frame {f}: cam_T_needle", est.cam_T_needle)
+        _result_pose(f"frame {f}: cam_T_needle", est.cam_T_needle)
         for name in ("q95_trans_m", "q95_rot_rad", "latency_ms"):
             if _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True) < 0:  # the reader refuses it
                 raise ValueError(f"frame {f}: {name} must not be negative, got {getattr(est, name)!r}")
@@ -216,6 +232,7 @@ class ResultWriter:
         ortho = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
         if np.any(ortho > 1e-6) or np.any(np.linalg.det(R) <= 0):
             raise ValueError(f"frame {f}: particles have rotation blocks that are not proper rotations")
+        _check_reach(f"frame {f}: a particle", P[:, :3, 3])
         logp = np.asarray(est.log_posterior, dtype=float)
         if logp.shape != (n,):
             raise ValueError(f"frame {f}: log_posterior must have shape ({n},), got {logp.shape}")
@@ -295,7 +312,7 @@ class ResultWriter:
         if self._last_smoothed is not None and f <= self._last_smoothed:
             raise ValueError(f"smoothed frame {f} is not greater than the previous one {self._last_smoothed}")
         _scalar(f"smoothed frame {f}: t_s", t_s, allow_nan=False)
-        T = check_pose(f"smoothed frame {f}: cam_T_needle", cam_T_needle)
+        T = _result_pose(f"smoothed frame {f}: cam_T_needle", cam_T_needle)
         self._smooth_csv.writerow([str(f), _cell(t_s), *_pose_cells(T)])
         self._smooth.flush()
         self._last_smoothed = f

@@ -736,12 +736,11 @@ def test_export_bag_refuses_a_ros2_storage_for_a_ros1_bag(run: Path, tmp_path: P
     assert not bag.exists()
 
 
-@pytest.mark.parametrize("command", ["track", "evaluate-result", "evaluate-recording", "batch", "ablate"])
+@pytest.mark.parametrize("command", ["track", "evaluate-result", "evaluate-recording"])
 def test_out_that_is_the_input_directory_is_refused(command: str, run: Path, map_result: Path, tmp_path: Path,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     """Before, ``track RUN --out RUN --overwrite`` wrote result.json, estimates.csv, ... into the recording (exit 0)
-    and ``evaluate RES --out RES --overwrite`` its tables into the result (``batch`` and ``ablate`` their results
-    into a run): two directories' files mixed. Refused
+    and ``evaluate RES --out RES --overwrite`` its tables into the result: two directories' files mixed. Refused
     with or without --overwrite, given through a symlink too, and the input is left as it was."""
     source = tmp_path / "in"
     shutil.copytree(map_result if command == "evaluate-result" else run, source)
@@ -750,9 +749,7 @@ def test_out_that_is_the_input_directory_is_refused(command: str, run: Path, map
     before = sorted(str(p.relative_to(source)) for p in source.rglob("*"))
     argv = {"track": ["track", str(source), "--method", "map"],
             "evaluate-result": ["evaluate", str(source)],
-            "evaluate-recording": ["evaluate", str(map_result), "--recording", str(source)],
-            "batch": ["batch", str(source), "--method", "map"],
-            "ablate": ["ablate", str(source), "--frames", "3"]}[command]
+            "evaluate-recording": ["evaluate", str(map_result), "--recording", str(source)]}[command]
     for out in (source, link):
         for overwrite in ([], ["--overwrite"]):
             assert main([*argv, "--out", str(out), *overwrite]) == 2

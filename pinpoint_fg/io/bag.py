@@ -513,12 +513,8 @@ def import_bag(
         camera=camera, needle=needle_model,
         extra={ROS_BAG_KEY: {"time_origin_ns": origin, "camera_frame_id": frame_id}},
     )
-    try:  # before anything is written; the camera's values came from the bag's camera_info: name that topic
-        check_recording_info(info, out / "recording.json")
-    except InputError as exc:
-        if not str(exc.column).startswith("camera"):
-            raise
-        raise InputError(f"{exc.reason} ({exc.column})", file=bag, column=ci.topic) from None
+    # before anything is written; the camera's values came from the bag's camera_info: name that topic
+    check_recording_info(info, out / "recording.json", camera_source=(Path(bag), ci.topic))
 
     def pick(role: str, k: int) -> Any:
         idx = picks.get(role)

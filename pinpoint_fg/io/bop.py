@@ -381,12 +381,8 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     }}
     info = RecordingInfo(name=cfg.name or scene.resolve().name, frame_rate_hz=float(cfg.fps), camera=camera,
                          needle=needle, extra=extra)
-    try:  # before anything is written; the camera's values came from scene_camera.json: name it
-        check_recording_info(info, out / "recording.json")
-    except InputError as exc:
-        if not str(exc.column).startswith("camera"):
-            raise
-        raise InputError(f"{exc.reason} ({exc.column})", file=scene / SCENE_CAMERA, column=f"{ids[0]}.cam_K") from None
+    # before anything is written; the camera's values came from scene_camera.json: name it
+    check_recording_info(info, out / "recording.json", camera_source=(scene / SCENE_CAMERA, f"{ids[0]}.cam_K"))
     rng = np.random.default_rng(cfg.seed)
     n_gt = n_mask = n_kp = 0
     prepare_output_dir(out, overwrite, "run", inputs=(scene,))

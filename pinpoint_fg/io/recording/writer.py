@@ -162,11 +162,17 @@ def _check_info_doc(doc: dict[str, Any], target: Path) -> None:
         raise InputError(errors[0].reason, file=target, column=errors[0].column)
 
 
-def check_recording_info(info: RecordingInfo, target: Path) -> None:
+def check_recording_info(info: RecordingInfo, target: Path, camera_source: tuple[Path, str] | None = None) -> None:
     """:class:`InputError` naming ``target`` and the key when the reader would refuse ``info`` as recording.json
     (:func:`_check_info_doc`); nothing is written. Importers call it before they create their output, to name
-    their own input instead (a bag's camera_info with fx = 1e300 left a half-written run behind)."""
-    _check_info_doc(_info_to_json(info), target)
+    their own input instead (a bag's camera_info with fx = 1e300 left a half-written run behind):
+    ``camera_source`` ``(file, field)`` is named instead of ``target`` for a ``camera.*`` value."""
+    try:
+        _check_info_doc(_info_to_json(info), target)
+    except InputError as exc:
+        if camera_source is None or not str(exc.column).startswith("camera"):
+            raise
+        raise InputError(f"{exc.reason} ({exc.column})", file=camera_source[0], column=camera_source[1]) from None
 
 
 def atomic_write_text(path: Path, text: str) -> None:

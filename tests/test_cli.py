@@ -144,6 +144,9 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     normal = lat["scenarios"]["normal"]["methods"]
     assert normal["pf"]["ratio_median_vs_pf"] == 1.0 and normal["svn"]["ratio_median_vs_map"] > 0
     assert lat["track"]["ratio"] > 0 and (tmp_path / "bench" / "latency_vs_n_l.png").stat().st_size > 0
+    # track's wall / steps is the median of three runs, each kept
+    assert len(lat["track"]["ratios"]) == 3 and lat["track"]["ratio"] == sorted(lat["track"]["ratios"])[1]
+    assert all((tmp_path / "bench" / "track-svn" / f"repeat-{k}" / "estimates.csv").is_file() for k in (1, 2, 3))
     assert "SVN cost vs particles N and window L" in capsys.readouterr().out
 
 

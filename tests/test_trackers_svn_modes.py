@@ -329,8 +329,8 @@ def test_a_proposal_whose_predicted_peak_is_a_held_mode_is_not_polished(monkeypa
 
 
 def test_settle_polishes_the_best_mode_from_several_starts_and_keeps_the_best_as_its_representative() -> None:
-    """starts=3: the best mode is also polished from its two lowest-cost members whose predicted peaks differ from
-    its best hypothesis's; the mode's representative (and evidence) is the polished start with the highest evidence."""
+    """starts=3: the best mode is also polished from two more of its members (here every member qualifies:
+    ``spacing=0``); the mode's representative (and evidence) is the polished start with the highest evidence."""
     from pinpoint_fg.trackers.svn_modes import settle
 
     T, _, arc = _ambiguous_scene()
@@ -346,7 +346,7 @@ def test_settle_polishes_the_best_mode_from_several_starts_and_keeps_the_best_as
     found = basins(w.newest, lin, w.evidence)
     assert found.reps.shape == (1,)
     one, polished1, _ = settle(w.subset(np.arange(10)), lin, found, iters=30, starts=1)
-    many, polished, lin_r = settle(w, lin, found, iters=30, starts=3)
+    many, polished, lin_r = settle(w, lin, found, iters=30, starts=3, spacing=0.0)
     assert polished1.tolist() == [int(found.reps[0])]
     assert polished.shape == (3,) and polished[0] == found.reps[0]
     assert np.all(found.labels[polished] == 0)
@@ -354,3 +354,23 @@ def test_settle_polishes_the_best_mode_from_several_starts_and_keeps_the_best_as
     assert many.reps[0] == polished[int(np.argmax(z))]
     assert many.mode_log_evidence[0] == pytest.approx(np.max(z), abs=1e-9)
     assert many.mode_log_evidence[0] >= one.mode_log_evidence[0] - 1e-9
+
+
+def test_extra_starts_are_the_lowest_cost_members_whose_predicted_peaks_lie_a_kernel_scale_from_every_start() -> None:
+    """Members predicting (nearly) the rep's peak, or one already chosen, are skipped however cheap they are."""
+    from pinpoint_fg.trackers.svn_modes import Basins, _extra_starts
+
+    tangent = {  # predicted peak of each member, in scaled units from the rep's (row 0)
+        0: [0, 0, 0, 0, 0, 0], 1: [0.6, 0, 0, 0, 0, 0], 2: [0, 0.7, 0, 0, 0, 0], 3: [1.5, 0, 0, 0, 0, 0],
+        4: [1.6, 0, 0, 0, 0, 0], 5: [0, 0, 0, 0, 1.5, 0], 6: [0, 0, 0, 3.0, 0, 0],
+    }
+    peaks = se3_exp(np.array([tangent[k] for k in range(7)], dtype=float) * SCALE)
+    labels = np.array([0, 0, 0, 0, 0, 0, 1])  # row 6 is another mode
+    found = Basins(np.zeros(7), peaks, labels, np.array([0, 6]), np.ones(7, bool))
+    cost = np.array([0.0, 1.0, 2.0, 3.0, 2.5, 4.0, 0.5])
+    # 1 and 2 are cheapest but within one unit of the rep; 4 is cheaper than 3 and both lie together: 4, then 5
+    assert _extra_starts(found, 0, 0, cost, 2, spacing=1.0) == [4, 5]
+    assert _extra_starts(found, 0, 0, cost, 1, spacing=1.0) == [4]
+    assert _extra_starts(found, 0, 0, cost, 3, spacing=1.0) == [4, 5]  # no third distinct peak
+    assert _extra_starts(found, 0, 0, cost, 2, spacing=0.5) == [1, 2]  # 0.5 unit: the near members qualify
+    assert _extra_starts(found, 0, 0, cost, 2, spacing=10.0) == []

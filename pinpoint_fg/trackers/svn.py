@@ -449,7 +449,8 @@ class SvnTracker(Tracker):
             found, polished, lin_r = settle(self.window, self._lin, found, self.svn.map_polish_iters,
                                             self.svn.polish_decrement, 2 * self.svn.modes.max_modes,
                                             self.svn.modes.map_starts,
-                                            None if predicted is None else predicted.start())
+                                            None if predicted is None else predicted.start(),
+                                            self.svn.modes.start_spacing)
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])

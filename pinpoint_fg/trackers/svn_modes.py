@@ -99,6 +99,9 @@ class ModeSettings:
     """At most this many screened proposals (the lowest predicted cost first) are polished per frame."""
     map_starts: int = 3
     """The best mode is polished from this many of its members (:func:`settle`; 1: its best hypothesis only)."""
+    start_spacing: float = 1.0
+    """The best mode's extra starts have predicted peaks at least this far apart (scaled units: one kernel scale,
+    5 deg / 1 mm; :func:`_extra_starts`)."""
     shared_books: bool = True
     """Every member of a settled mode takes its polished peak's window prior and evidence, right after the next
     frame's marginalisation (:func:`book_sources`; False: each hypothesis keeps its own)."""
@@ -220,8 +223,31 @@ def polish(sub: Window, lin: Linearization, iters: int, decrement: float = 1e-3)
     return lin
 
 
+def _extra_starts(found: Basins, mode: int, rep: int, cost: np.ndarray, count: int, spacing: float) -> list[int]:
+    """Up to ``count`` members of ``mode`` to polish besides ``rep``, the lowest ``cost (N,)`` first, each one's
+    predicted peak at least ``spacing`` scaled units from every start chosen before it (``rep``'s first).
+
+    The starts should reach distinct local optima, and members whose predicted peaks lie within one kernel scale
+    of a start already chosen mostly end at its optimum. Measured on drive-01, frame 57, polishing every member
+    of the best mode to convergence (30 steps): 18 of the 20 members whose predicted peak lay 0.5-1.0 unit from
+    the rep's ended at the rep's optimum (11 deg off the truth); the optimum 5.3 nats lower (7.6 deg off, MHT's
+    pose) was reached from 5 of the 10 members 1.4-1.8 units away. The earlier rule (the lowest-cost members
+    more than 0.5 unit from the rep only) spent both extra starts on members 0.51 and 0.58 unit away.
+    """
+    members = np.flatnonzero(found.labels == mode)
+    members = members[members != rep]
+    far = members[scaled_distance(found.peaks[rep], found.peaks[members]) >= spacing]
+    out: list[int] = []
+    for j in far[np.argsort(cost[far], kind="stable")]:
+        if len(out) >= count:
+            break
+        if not out or np.min(scaled_distance(found.peaks[j], found.peaks[out])) >= spacing:
+            out.append(int(j))
+    return out
+
+
 def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrement: float = 1e-3,
-           max_modes: int = 8, starts: int = 1, predicted: tuple | None = None
+           max_modes: int = 8, starts: int = 1, predicted: tuple | None = None, spacing: float = 1.0
            ) -> tuple[Basins, np.ndarray, Linearization]:
     """Polish the best hypothesis of each of the ``max_modes`` best modes on its window and re-score the modes.
 
@@ -233,11 +259,11 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
     of a mode carries its mode's polished log-evidence (modes beyond ``max_modes`` keep their
     prediction).
 
-    ``starts > 1``: the best mode is also polished from up to ``starts - 1`` more of its members — the
-    lowest-cost ones whose predicted peak is at least half a scaled unit from the best hypothesis's. A
-    mode groups peaks within ``separation`` (10 deg, 2 mm); through an edge-on turn it can hold two
-    local optima a few degrees apart, and the best hypothesis's polish finds only the one it started
-    in. The mode's representative is then the polished start with the highest evidence.
+    ``starts > 1``: the best mode is also polished from up to ``starts - 1`` more of its members, chosen by
+    :func:`_extra_starts` (the lowest-cost ones whose predicted peaks lie at least ``spacing`` scaled units from
+    every other start's). A mode groups peaks within ``separation`` (10 deg, 2 mm); through an edge-on turn
+    it can hold two local optima a few degrees apart, and the best hypothesis's polish finds only the one it
+    started in. The mode's representative is then the polished start with the highest evidence.
 
     ``predicted`` ``(row, cam_T_newest (4, 4))``: one more start for the mode of hypothesis ``row``, at
     ``cam_T_newest`` — the previous MAP hypothesis at its motion prediction, where single-mode MAP starts
@@ -260,14 +286,9 @@ def settle(window: Window, lin: Linearization, found: Basins, iters: int, decrem
     reps = found.reps[chosen]
     cand, cand_mode = list(reps), list(chosen)
     if starts > 1 and chosen.size:
-        m0, r0 = int(chosen[0]), int(reps[0])
-        members = np.flatnonzero(found.labels == m0)
-        members = members[members != r0]
-        far = scaled_distance(found.peaks[r0], found.peaks[members]) > 0.5
-        members = members[far]
-        extra = members[np.argsort((lin.value + window.evidence)[members], kind="stable")[: starts - 1]]
-        cand += [int(e) for e in extra]
-        cand_mode += [m0] * extra.size
+        extra = _extra_starts(found, int(chosen[0]), int(reps[0]), lin.value + window.evidence, starts - 1, spacing)
+        cand += extra
+        cand_mode += [int(chosen[0])] * len(extra)
     lin_sub = lin.subset(cand)
     from_prediction = False
     if predicted is not None and np.isin(found.labels[predicted[0]], chosen):

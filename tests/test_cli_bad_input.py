@@ -988,3 +988,61 @@ def test_a_hand_edited_result_method_is_located(method: str, command: str, map_r
     assert main([command, str(result), "--out", str(out)]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert str(result / "result.json") in line and "'method'" in line
+
+
+# --- fifth audit: modes.csv that lacks frames, gt behind the camera, half-written runs, huge q95 ---------------
+
+def _drop_modes_rows(modes_csv: Path, frames: set[int]) -> None:
+    lines = modes_csv.read_text().splitlines(keepends=True)
+    modes_csv.write_text("".join([lines[0], *(s for s in lines[1:] if int(s.split(",")[0]) not in frames)]))
+
+
+@pytest.mark.parametrize(("dropped", "row", "says"), [
+    ({3, 4, 5, 6, 7}, "row ", "frame 3 of estimates.csv has no modes"),  # modes.csv stops early
+    ({1}, "row ", "frame 1 of estimates.csv has no modes"),               # a frame in the middle
+    ({0, 1, 2, 3, 4, 5, 6, 7}, "", "frame 0 of estimates.csv has no modes"),  # the header only
+])
+def test_evaluate_refuses_a_modes_csv_that_lacks_frames(dropped: set[int], row: str, says: str, svn_result: Path,
+                                                        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A modes.csv missing frames of estimates.csv was evaluated on the frames it had (the truth kept by the modes
+    and the modes' bimodal share of a subset, exit 0); the format has one row per frame and mode."""
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    _drop_modes_rows(result / "modes.csv", dropped)
+    capsys.readouterr()
+    assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(result / "modes.csv") in line and row in line and "'frame'" in line and says in line
+
+
+def test_evaluate_refuses_a_modes_frame_the_estimates_lack(svn_result: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """A modes.csv row of a frame estimates.csv does not have was ignored without a word."""
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    lines = (result / "modes.csv").read_text().splitlines()
+    cells = lines[-1].split(",")
+    cells[:3] = ["99", "0", "1.0"]
+    (result / "modes.csv").write_text("\n".join([*lines, ",".join(cells)]) + "\n")
+    capsys.readouterr()
+    assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert f"row {len(lines)}:" in line and "'frame'" in line and "frame 99 is not a frame of estimates.csv" in line
+
+
+def test_an_unfinished_result_may_lack_the_modes_of_its_last_frame_only(svn_result: Path, tmp_path: Path) -> None:
+    """The writer appends a frame's modes after its estimates row: a result stopped between the two is evaluated
+    (its last frame without modes); a gap anywhere else is refused as for a finished result."""
+    from pinpoint_fg.eval.modes import modes_of_result
+
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    doc = json.loads((result / "result.json").read_text())
+    doc["complete"] = False
+    (result / "result.json").write_text(json.dumps(doc))
+    _drop_modes_rows(result / "modes.csv", {7})
+    modes = modes_of_result(read_result(result))
+    assert modes.has_modes.tolist() == [True] * 7 + [False]
+    _drop_modes_rows(result / "modes.csv", {6})
+    with pytest.raises(InputError, match="frame 6 of estimates.csv has no modes"):
+        modes_of_result(read_result(result))

@@ -761,6 +761,9 @@ def evaluate_results(
         rm = modes_of_result(ref_res)
         refs[ref_name] = (str(ref_res.root), ref_res.frame, rm.weights)
 
+    say("modes")  # before the long computations too: a modes.csv that lacks frames is refused at once
+    modes = [modes_of_result(res) for res, _, _, _ in loaded]
+
     # ΔNLL labels and floor: once per (recording, likelihood), on the union of the frames needed
     needed: dict[tuple, set[int]] = {}
     for res, _, _, key in loaded:
@@ -773,8 +776,6 @@ def evaluate_results(
                 rec, model, config or AmbiguityConfig(), alternatives=ambiguity, frames=needed[key]
             )
 
-    say("modes")
-    modes = [modes_of_result(res) for res, _, _, _ in loaded]
     if reference is None:
         for (res, rec, _, _), m in zip(loaded, modes, strict=True):
             if res.method == "mht" and m.source == "modes.csv" and rec.info.name not in refs:

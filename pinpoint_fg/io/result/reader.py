@@ -393,6 +393,33 @@ def read_modes(out_dir: str | Path) -> ModeHistory:
                        cov_xi=cov[:keep])
 
 
+def check_modes_cover(hist: ModeHistory, res: Result) -> None:
+    """:class:`InputError` naming modes.csv's row and ``frame`` unless its frames are those of ``estimates.csv``.
+
+    Decision (``RECORDING_FORMAT.md``: "one row per frame and mode", written frame by frame like
+    ``estimates.csv``): every frame of the estimates has its modes, and modes.csv has no frame the estimates lack.
+    A modes.csv missing frames was evaluated on the frames it had (the truth-kept and bimodal shares of a subset,
+    exit 0). The writer appends a frame's modes after its estimates row, so a result whose writer never closed may
+    lack the modes of its last estimates frame only; that frame is then left without modes.
+    """
+    path = res.root / MODES_CSV
+    have = np.unique(hist.frame)
+    frames = res.frame if res.complete or len(res.frame) == 0 else res.frame[:-1]
+    extra = np.nonzero(~np.isin(hist.frame, res.frame))[0]
+    if extra.size:
+        pos = int(extra[0])
+        raise InputError(f"frame {int(hist.frame[pos])} is not a frame of {ESTIMATES_CSV}", file=path,
+                         row=pos + 1, column="frame")
+    missing = frames[~np.isin(frames, have)]
+    if missing.size:
+        f = int(missing[0])
+        later = np.nonzero(hist.frame > f)[0]
+        row = int(later[0]) + 1 if later.size else len(hist.frame)
+        where = "before this row" if later.size else "after the last row" if len(hist.frame) else "(no data rows)"
+        raise InputError(f"frame {f} of {ESTIMATES_CSV} has no modes {where} (every frame has 1 to {MAX_MODES} "
+                         f"modes; {missing.size} frame(s) missing)", file=path, row=row or None, column="frame")
+
+
 def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> Recording:
     """The recording ``result.json`` names (``recording_path``; relative: to the result), read once per path.
 

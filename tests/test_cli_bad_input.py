@@ -520,20 +520,23 @@ def test_a_run_given_twice_is_refused_not_pooled_twice(command: str, run: Path, 
 def test_calibrate_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
     """Before: exit 0, and the keypoint residuals of the needle's mirror image pooled into the noise file
-    (tip std 0.6 -> 42 px from one such frame of eight)."""
+    (tip std 0.6 -> 42 px from one such frame of eight). A needle centre behind the camera is now the reader's
+    refusal (``test_ground_truth_behind_the_camera_is_refused_by_the_reader``); a centre 0.5 µm in front of it
+    passes the reader, but the frame's mask shows the centre within MIN_DEPTH_M: calibrate's own check."""
     bad = tmp_path / "run"
     shutil.copytree(run, bad)
     lines = (bad / "frames.csv").read_text().splitlines()
     header = lines[0].split(",")
-    cells = lines[3].split(",")
-    cells[header.index("gt_z_m")] = str(-float(cells[header.index("gt_z_m")]))
-    lines[3] = ",".join(cells)
+    cells = lines[4].split(",")
+    assert cells[header.index("mask")]  # data row 4 (frame 3) has a mask: the centre is seen
+    cells[header.index("gt_z_m")] = "5e-07"
+    lines[4] = ",".join(cells)
     (bad / "frames.csv").write_text("\n".join(lines) + "\n")
     assert not validate_run(bad)[1]  # a valid recording: its content is what is wrong
     out = tmp_path / "noise.json"
     assert main(["calibrate", str(bad), "--out", str(out)]) == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert "frames.csv" in line and "row 3" in line and "gt_z_m" in line and "not in front" in line
+    assert "frames.csv" in line and "row 4" in line and "gt_z_m" in line and "not in front" in line
     assert not out.exists()
     assert main(["calibrate", str(run), "--out", str(out)]) == 0  # the run as simulated still calibrates
 
@@ -1046,3 +1049,113 @@ def test_an_unfinished_result_may_lack_the_modes_of_its_last_frame_only(svn_resu
     _drop_modes_rows(result / "modes.csv", {6})
     with pytest.raises(InputError, match="frame 6 of estimates.csv has no modes"):
         modes_of_result(read_result(result))
+
+
+def _gt_behind(run: Path, dest: Path, row: int = 3) -> Path:
+    """A copy of ``run`` whose ground truth of data row ``row`` is mirrored through the image plane (z -> -z)."""
+    shutil.copytree(run, dest)
+    lines = (dest / "frames.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index("gt_z_m")] = str(-float(cells[header.index("gt_z_m")]))
+    lines[row] = ",".join(cells)
+    (dest / "frames.csv").write_text("\n".join(lines) + "\n")
+    return dest
+
+
+def test_ground_truth_behind_the_camera_is_refused_by_the_reader(run: Path, map_result: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A gt pose mirrored behind the camera validated, and ``evaluate`` scored the estimates against it: one such
+    frame of eight turned a 0.2 mm mean error into 10.7 mm, exit 0."""
+    bad = _gt_behind(run, tmp_path / "run")
+    errors = validate_run(bad)[1]
+    assert len(errors) == 1 and errors[0].row == 3 and errors[0].column == "gt_z_m"
+    assert "not in front of the camera" in str(errors[0])
+    capsys.readouterr()
+    assert main(["evaluate", str(map_result), "--recording", str(bad), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bad / "frames.csv") in line and "row 3" in line and "'gt_z_m'" in line
+
+
+def test_the_recording_writer_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path) -> None:
+    """What the reader refuses is not written (``groundtruth``, the importers and ``simulate`` write through it)."""
+    from pinpoint_fg.io.recording.reader import read_recording
+    from pinpoint_fg.io.recording.writer import RecordingWriter
+
+    rec = read_recording(run)
+    T = rec.frames[0].cam_T_needle_gt.copy()
+    T[2, 3] = 0.0  # in the image plane: not in front either
+    with RecordingWriter(tmp_path / "w", rec.info) as w, pytest.raises(InputError) as exc:
+        w.add(replace(rec.frames[0], cam_T_needle_gt=T, mask=None, image=None))
+    assert exc.value.column == "gt_z_m" and "not in front of the camera" in str(exc.value)
+
+
+def test_import_bop_refuses_ground_truth_behind_the_camera(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A scene_gt.json entry with the needle behind the camera was imported (exit 0) into a run whose own reader
+    then refused it; now scene_gt.json and the entry's cam_t_m2c are named before anything is written."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=3)
+    path = Path(info["scene"]) / "scene_gt.json"
+    doc = json.loads(path.read_text())
+    idx = next(i for i, e in enumerate(doc["1"]) if e["obj_id"] == NEEDLE_OBJ_ID)
+    doc["1"][idx]["cam_t_m2c"][2] = -abs(doc["1"][idx]["cam_t_m2c"][2])
+    path.write_text(json.dumps(doc))
+    out = tmp_path / "run"
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "not in front of the camera" in line
+    assert not out.exists()
+
+
+def test_import_bag_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """A bag whose gt topic puts the needle behind the camera was imported, exit 0, into a run its reader refused."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    good = tmp_path / "good.bag"
+    assert main(["export-bag", str(run), "--out", str(good), "--format", "ros1"]) == 0
+    bag = tmp_path / "bad.bag"
+    topic = None
+    with AnyReader([good]) as reader, Writer(bag) as writer:
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=reader.typestore)
+                 for c in reader.connections}
+        for conn, stamp, raw in reader.messages():
+            if conn.topic.endswith("gt_pose") and topic is None:
+                topic = conn.topic
+                msg = reader.deserialize(raw, conn.msgtype)
+                msg.pose.position.z = -msg.pose.position.z
+                raw = reader.typestore.serialize_ros1(msg, conn.msgtype)
+            writer.write(conns[conn.id], stamp, raw)
+    assert topic is not None
+    capsys.readouterr()
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(run / "recording.json")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bag) in line and repr(topic) in line and "not in front of the camera" in line
+    assert not out.exists()
+
+
+def test_groundtruth_refuses_a_mount_that_puts_the_needle_behind_the_camera(board_run: Path, tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """A board-to-needle mount 1 m behind the board rewrote every gt cell behind the camera (exit 0), a run its
+    reader now refuses; the mount is named and frames.csv left as it was."""
+    run = tmp_path / "run"
+    shutil.copytree(board_run, run)
+    before = (run / "frames.csv").read_bytes()
+    b2n = write_board_to_needle(tmp_path / "b2n.json")
+    doc = json.loads(b2n.read_text())
+    from pinpoint_fg.io.recording.reader import read_recording
+
+    gt0 = read_recording(run).frames[0].cam_T_needle_gt  # = cam_T_board @ board_T_needle in frame 0
+    back = np.eye(4)
+    back[2, 3] = -0.5  # the needle moved 0.5 m along the camera's axis towards it: behind the camera
+    doc["board_T_needle"] = (np.array(doc["board_T_needle"]) @ np.linalg.inv(gt0) @ back @ gt0).tolist()
+    b2n.write_text(json.dumps(doc))
+    assert main(["groundtruth", str(run), "--board-to-needle", str(b2n)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(b2n) in line and "'board_T_needle'" in line and "not in front of the camera" in line
+    assert (run / "frames.csv").read_bytes() == before
+

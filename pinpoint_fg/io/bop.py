@@ -62,7 +62,7 @@ from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
 from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
 from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
-from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo, gt_depth_problem
 from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info
 
 SCENE_CAMERA = "scene_camera.json"
@@ -248,6 +248,16 @@ def _gt_entries(path: Path, obj_id: int, instance: int | None) -> dict[int, tupl
 # --------------------------------------------------------------------------------------------
 
 
+def _check_gt_depths(gts: dict[int, tuple[int, np.ndarray]], model_T_needle: np.ndarray, path: Path) -> None:
+    """:class:`InputError` naming the ``cam_t_m2c`` of the first entry whose needle lies behind the camera, before
+    anything is written (:func:`~pinpoint_fg.io.recording.schema.gt_depth_problem`: the run's reader refuses it)."""
+    for im, (gt_idx, cam_T_model) in sorted(gts.items()):
+        problem = gt_depth_problem(cam_T_model @ model_T_needle)
+        if problem is not None:
+            raise InputError(problem, file=path,
+                             column=f"{im}[{gt_idx}].cam_t_m2c")
+
+
 def _find_image(scene: Path, im: int) -> Path:
     for d in IMAGE_DIRS:
         if (scene / d).is_dir():
@@ -343,6 +353,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
                          file=model_path) from None
     cams = _camera_entries(scene / SCENE_CAMERA)
     gts = _gt_entries(scene / SCENE_GT, cfg.obj_id, cfg.instance)
+    _check_gt_depths(gts, fit.model_T_needle, scene / SCENE_GT)
     orphans = sorted(set(gts) - set(cams))
     if orphans:
         raise InputError(f"has ground truth for im_id {orphans[0]}, which {SCENE_CAMERA} does not list",

@@ -1159,3 +1159,58 @@ def test_groundtruth_refuses_a_mount_that_puts_the_needle_behind_the_camera(boar
     assert str(b2n) in line and "'board_T_needle'" in line and "not in front of the camera" in line
     assert (run / "frames.csv").read_bytes() == before
 
+
+def test_import_bop_that_fails_half_way_leaves_no_run_behind(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A mask PNG of the third image cut short: the import stopped there (one line, exit 2) but left OUT as a valid
+    run of the first two frames, which every later command read as the scene. Now OUT is not created; with
+    --overwrite over an earlier run, that run is left as it was."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=3)
+    argv = ["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID)]
+    earlier = tmp_path / "earlier"
+    assert main([*argv, "--out", str(earlier)]) == 0
+    before = {str(p.relative_to(earlier)): p.read_bytes() for p in earlier.rglob("*") if p.is_file()}
+    mask = Path(info["scene"]) / "mask_visib" / "000002_000001.png"
+    mask.write_bytes(mask.read_bytes()[:12])
+    capsys.readouterr()
+    out = tmp_path / "new" / "run"
+    assert main([*argv, "--out", str(out)]) == 2
+    assert str(mask) in _one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "new").exists()  # nor the parent it would have created
+    assert main([*argv, "--out", str(earlier), "--overwrite"]) == 2
+    assert {str(p.relative_to(earlier)): p.read_bytes() for p in earlier.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dataset", "earlier"]  # no staging directory left
+
+
+def test_simulate_that_fails_leaves_no_directory_behind(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """``simulate --frames 100000000000`` (out of memory) left an empty --out; a failure while writing left a
+    shorter run. Neither leaves anything now, and a successful run with --overwrite keeps other files."""
+    from pinpoint_fg.io.recording.writer import RecordingWriter
+    from pinpoint_fg.sim import scenarios
+
+    out = tmp_path / "s"
+    assert main(["simulate", "--scenario", "normal", "--frames", "100000000000", "--out", str(out)]) == 2
+    assert _one_error_line(capsys.readouterr().err).startswith("error: out of memory")
+    assert not out.exists()
+
+    add = RecordingWriter.add
+
+    def fails_at_frame_3(self, frame, mask=None, image=None):  # noqa: ANN001, ANN202
+        if frame.frame == 3:
+            raise MemoryError("Unable to allocate the image of frame 3")
+        return add(self, frame, mask=mask, image=image)
+
+    monkeypatch.setattr(RecordingWriter, "add", fails_at_frame_3)
+    assert main(["simulate", "--scenario", "normal", "--frames", "6", "--out", str(out)]) == 2
+    assert "frame 3" in _one_error_line(capsys.readouterr().err)
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == []
+    monkeypatch.setattr(RecordingWriter, "add", add)
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["simulate", "--scenario", "normal", "--frames", "4", "--out", str(out), "--overwrite"]) == 0
+    assert (out / "notes.txt").read_text() == "mine" and len(validate_run(out)[0].frames) == 4
+    assert scenarios.simulate("normal", 4, out=tmp_path / "api") == tmp_path / "api"
+    assert (tmp_path / "api" / "frames.csv").read_bytes() == (out / "frames.csv").read_bytes()

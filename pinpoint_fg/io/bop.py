@@ -60,7 +60,7 @@ from factors.geometry import PinholeCamera
 from factors.lie import homogeneous
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
-from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
+from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir
 from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
 from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo, gt_depth_problem
 from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info
@@ -337,7 +337,9 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
 
     Everything that can be checked before writing is checked first (JSON files, the model fit,
     the existence of every image and mask file); ``out`` must not exist or be empty unless ``overwrite``
-    (:func:`pinpoint_fg.io.outdir.prepare_output_dir`, called once everything has been checked).
+    (:func:`pinpoint_fg.io.outdir.check_output_dir`). The run is written into a hidden sibling of ``out`` and moved
+    into place at the end (:func:`pinpoint_fg.io.outdir.staged_output_dir`): a file that fails half-way (a corrupt
+    mask PNG) leaves no partial run behind (it was a valid run of the frames before it).
     """
     scene, model_path, out = Path(scene_dir), Path(model_path), Path(out)
     cfg = config
@@ -396,8 +398,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     check_recording_info(info, out / "recording.json", camera_source=(scene / SCENE_CAMERA, f"{ids[0]}.cam_K"))
     rng = np.random.default_rng(cfg.seed)
     n_gt = n_mask = n_kp = 0
-    prepare_output_dir(out, overwrite, "run", inputs=(scene,))
-    with RecordingWriter(out, info) as writer:
+    with staged_output_dir(out, overwrite, "run", inputs=(scene,)) as stage, RecordingWriter(stage, info) as writer:
         for im in ids:
             gt = gts.get(im)
             cam_T_needle = None if gt is None else gt[1] @ fit.model_T_needle

@@ -1214,3 +1214,44 @@ def test_simulate_that_fails_leaves_no_directory_behind(tmp_path: Path, monkeypa
     assert (out / "notes.txt").read_text() == "mine" and len(validate_run(out)[0].frames) == 4
     assert scenarios.simulate("normal", 4, out=tmp_path / "api") == tmp_path / "api"
     assert (tmp_path / "api" / "frames.csv").read_bytes() == (out / "frames.csv").read_bytes()
+
+
+@pytest.mark.parametrize("column", ["q95_trans_m", "q95_rot_rad"])
+def test_a_huge_q95_is_located_and_a_large_one_scores_finitely(column: str, svn_result: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A hand-edited q95 of 1e300 (finite) printed NumPy's "overflow encountered in square" on stderr and wrote
+    NLL-S = inf to summary.csv, exit 0. Beyond MAX_RESULT_Q95 it is now refused at its row; up to it, evaluate's
+    numbers stay finite and quiet."""
+    import csv
+
+    from pinpoint_fg.io.result.schema import MAX_RESULT_Q95
+
+    for cell, code in (("1e300", 2), (repr(MAX_RESULT_Q95), 0)):
+        result = tmp_path / f"res{code}"
+        shutil.copytree(svn_result, result)
+        _edit_cell(result / "estimates.csv", 3, column, cell)
+        capsys.readouterr()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            assert main(["evaluate", str(result), "--out", str(tmp_path / f"ev{code}")]) == code
+        err = capsys.readouterr().err
+        if code:
+            line = _one_error_line(err)
+            assert str(result / "estimates.csv") in line and "row 3" in line and repr(column) in line
+        else:
+            assert not err.strip()
+            with open(tmp_path / "ev0" / "summary.csv") as f:
+                row = next(csv.DictReader(f))
+            kind = "trans" if "trans" in column else "rot"
+            assert all(np.isfinite(float(row[k])) for k in (f"nlls_{kind}", f"is_{kind}", f"{kind}_q95_"
+                                                            + ("mm" if kind == "trans" else "deg")))
+
+
+def test_the_result_writer_refuses_a_q95_the_reader_refuses(tmp_path: Path) -> None:
+    """What the reader refuses is not written (``track`` stops at that frame, its finished frames kept)."""
+    from pinpoint_fg.io.result.schema import MAX_RESULT_Q95
+    from tests.test_io_result import make_estimates, open_writer
+
+    est = make_estimates(1)[0]
+    with open_writer(tmp_path / "r") as w, pytest.raises(ValueError, match="beyond the result format"):
+        w.write(replace(est, q95_rot_rad=2 * MAX_RESULT_Q95))

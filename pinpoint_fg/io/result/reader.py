@@ -28,6 +28,7 @@ from pinpoint_fg.io.result.schema import (
     ESTIMATES_CSV,
     MAX_ABS_RESULT_METRES,
     MAX_MODES,
+    MAX_RESULT_Q95,
     MODE_COLUMNS,
     MODE_WEIGHT_SUM_TOL,
     MODES_CSV,
@@ -248,6 +249,9 @@ def read_result(out_dir: str | Path) -> Result:
             arr[r - 1] = _num(est_path, r, c, cells[idx[c]], allow_nan=True)
             if arr[r - 1] < 0:  # a radius and a duration: the writer never writes a negative one
                 raise InputError(f"must not be negative, got {shown(cells[idx[c]])}", file=est_path, row=r, column=c)
+            if c != "latency_ms" and arr[r - 1] > MAX_RESULT_Q95:  # its square overflowed in evaluate
+                raise InputError(f"{shown(cells[idx[c]])} is beyond the result format's {MAX_RESULT_Q95:g}",
+                                 file=est_path, row=r, column=c)
         b = cells[idx["bimodal"]]
         if b not in ("0", "1"):
             raise InputError(f"must be 0 or 1, got {shown(b)}", file=est_path, row=r, column="bimodal")

@@ -23,6 +23,7 @@ from pinpoint_fg.io.result.schema import (
     ESTIMATES_CSV,
     MAX_ABS_RESULT_METRES,
     MAX_MODES,
+    MAX_RESULT_Q95,
     MODE_COLUMNS,
     MODE_WEIGHT_SUM_TOL,
     MODES_CSV,
@@ -213,8 +214,11 @@ class ResultWriter:
         _scalar(f"frame {f}: t_s", est.t_s, allow_nan=False)
         _result_pose(f"frame {f}: cam_T_needle", est.cam_T_needle)
         for name in ("q95_trans_m", "q95_rot_rad", "latency_ms"):
-            if _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True) < 0:  # the reader refuses it
+            value = _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True)
+            if value < 0:  # the reader refuses it
                 raise ValueError(f"frame {f}: {name} must not be negative, got {getattr(est, name)!r}")
+            if name != "latency_ms" and value > MAX_RESULT_Q95:  # the reader refuses it (MAX_RESULT_Q95)
+                raise ValueError(f"frame {f}: {name} {value:.3g} is beyond the result format's {MAX_RESULT_Q95:g}")
         if not isinstance(est.bimodal, bool | np.bool_) and est.bimodal not in (0, 1):
             raise ValueError(f"frame {f}: bimodal must be a bool, got {est.bimodal!r}")
         it = est.iterations

@@ -1255,3 +1255,54 @@ def test_the_result_writer_refuses_a_q95_the_reader_refuses(tmp_path: Path) -> N
     est = make_estimates(1)[0]
     with open_writer(tmp_path / "r") as w, pytest.raises(ValueError, match="beyond the result format"):
         w.write(replace(est, q95_rot_rad=2 * MAX_RESULT_Q95))
+
+
+@pytest.fixture(scope="module")
+def namesake(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A run named 'normal-01' like ``run`` (same scenario, seed and frames) but of other content (spurs in its masks,
+    no images): every frame of a result of ``run`` is one of its frames."""
+    out = tmp_path_factory.mktemp("audit5") / "other" / "normal-01"
+    assert main(["simulate", "--scenario", "normal", "--frames", "8", "--seed", "1", "--mask-spurs", "0.5",
+                 "--out", str(out)]) == 0
+    return out
+
+
+def test_evaluate_refuses_two_recordings_of_one_name(run: Path, namesake: Path, map_result: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Results of two different recordings named alike were evaluated together, exit 0: tables, figure files and
+    the MHT reference are keyed by the name, so one recording's reference judged the other's frames and one figure
+    overwrote the other. Refused; results of two copies of one recording are still evaluated together."""
+    other = tmp_path / "res-other"
+    assert main(["track", str(namesake), "--method", "map", "--out", str(other)]) == 0
+    copy = tmp_path / "copy" / run.name
+    shutil.copytree(run, copy)
+    on_copy = tmp_path / "res-copy"
+    assert main(["track", str(copy), "--method", "map", "--out", str(on_copy)]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(map_result), str(other), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(other / "result.json") in line and "'recording_name'" in line and "both named 'normal-01'" in line
+    assert main(["evaluate", str(map_result), str(on_copy), "--out", str(tmp_path / "ev2")]) == 0
+
+
+def test_evaluate_refuses_a_recording_of_the_same_name_and_other_content(run: Path, namesake: Path, map_result: Path,
+                                                                        tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """``evaluate RES --recording OTHER`` with OTHER named like RES's recording was scored against OTHER's ground
+    truth, exit 0 (only the names were compared). track now records the recording's fingerprint; a result written
+    before it is compared with the recording at its recording_path when that still exists."""
+    capsys.readouterr()
+    assert main(["evaluate", str(map_result), "--recording", str(namesake), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(map_result / "result.json") in line and "'recording_fingerprint'" in line and "differs" in line
+    legacy = tmp_path / "legacy"
+    shutil.copytree(map_result, legacy)
+    doc = json.loads((legacy / "result.json").read_text())
+    del doc["recording_fingerprint"]
+    (legacy / "result.json").write_text(json.dumps(doc))
+    assert main(["evaluate", str(legacy), "--recording", str(namesake), "--out", str(tmp_path / "ev")]) == 2
+    assert "'recording_path'" in _one_error_line(capsys.readouterr().err)
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)  # the same recording elsewhere (moved, copied) is fine, with or without the key
+    for res in (map_result, legacy):
+        assert main(["evaluate", str(res), "--recording", str(copy), "--out", str(tmp_path / f"ok-{res.name}")]) == 0

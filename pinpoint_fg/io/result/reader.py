@@ -18,6 +18,7 @@ import numpy as np
 from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError, path_argument, path_list
 from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.recording.fingerprint import FINGERPRINT_KEY, recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, Recording, json_shown, shown
 from pinpoint_fg.io.result.particles import read_journal, read_npz
@@ -448,4 +449,41 @@ def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> R
     if str(res.info.get("recording_name")) != rec.info.name:
         raise InputError(f"result is of recording {res.info.get('recording_name')!r}, the recording is "
                          f"{rec.info.name!r}", file=res.root / "result.json", column="recording_name")
+    check_tracked_on(res, rec)
     return rec
+
+
+def _fingerprint_at_recorded_path(res: Result, rec: Recording) -> str | None:
+    """The fingerprint of the recording ``res``'s ``recording_path`` names, when that is another readable directory
+    than ``rec``'s (a result written before ``recording_fingerprint`` existed); else None."""
+    text = res.info.get("recording_path")
+    if not text:
+        return None
+    p = Path(str(text))
+    if not p.is_absolute() and not p.exists():
+        p = res.root / p
+    if not p.is_dir() or os.path.realpath(p) == os.path.realpath(rec.root):
+        return None
+    try:
+        return recording_fingerprint(read_recording(p))
+    except InputError:  # moved, replaced or damaged since: the name is all there is to check
+        return None
+
+
+def check_tracked_on(res: Result, rec: Recording) -> None:
+    """:class:`InputError` naming ``result.json``'s ``recording_fingerprint`` when ``rec`` is not the recording ``res``
+    was tracked on: same name, other content (:mod:`pinpoint_fg.io.recording.fingerprint`; a run re-simulated with
+    other options into the same directory, or another dataset's scene ``000001``). It was scored against that
+    recording's ground truth, exit 0. A result written before the key existed is compared with the recording its
+    ``recording_path`` names when that is another readable directory, else only its name is checked."""
+    recorded, key = res.info.get(FINGERPRINT_KEY), FINGERPRINT_KEY
+    if recorded is None:
+        recorded, key = _fingerprint_at_recorded_path(res, rec), "recording_path"
+        if recorded is None:
+            return
+    path = res.root / "result.json"
+    if not isinstance(recorded, str):
+        raise InputError(f"must be a string, got {json_shown(recorded)}", file=path, column=key)
+    if recorded != recording_fingerprint(rec):
+        raise InputError(f"the recording {rec.root} is named {rec.info.name!r} like the one this result was tracked "
+                         "on, but its content differs (camera, needle, observations or masks)", file=path, column=key)

@@ -15,6 +15,7 @@ import numpy as np
 import pinpoint_fg
 from factors.geometry import xyz_quat_from_pose
 from pinpoint_fg.estimate import Estimate
+from pinpoint_fg.io.recording.fingerprint import FINGERPRINT_KEY
 from pinpoint_fg.io.recording.writer import atomic_write_text, check_pose
 from pinpoint_fg.io.result.particles import ParticleWriter
 from pinpoint_fg.io.result.schema import (
@@ -146,6 +147,7 @@ class ResultWriter:
         weighted: bool = False,
         smoothed: bool = False,
         *,
+        recording_fingerprint: str | None = None,
         npz_large_bytes: int = 64_000,
         npz_min_interval_s: float = 2.0,
     ) -> None:
@@ -166,6 +168,8 @@ class ResultWriter:
             "smoothed": self.smoothed,
             "complete": False,
         }
+        if recording_fingerprint is not None:  # the recording's identity beyond its name (io.recording.fingerprint)
+            self._info[FINGERPRINT_KEY] = str(recording_fingerprint)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         for name in (ESTIMATES_CSV, PARTICLES_NPZ, TRAJECTORY_TUM, SMOOTHED_CSV, PARTICLES_JOURNAL, MODES_CSV):
             (self.out_dir / name).unlink(missing_ok=True)

@@ -17,7 +17,8 @@ A result is a directory::
 ``weighted`` (bool: particles.npz has ``weight``), ``smoothed`` (bool: smoothed.csv exists),
 ``complete`` (bool: false until the writer was closed normally). The writer also records
 ``frames`` (count, at close) and ``particles`` (N, at close), and ``stopped`` (the exception's
-class name) when the run ended with an exception.
+class name) when the run ended with an exception; ``track`` adds ``recording_fingerprint``
+(:mod:`pinpoint_fg.io.recording.fingerprint`).
 
 Crash safety. Every CSV/TUM row is flushed as it is written. ``particles.npz`` cannot be
 appended to (its arrays are stacked over frames), so it is rewritten whole, atomically

@@ -117,10 +117,10 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from pinpoint_fg.io.outdir import prepare_output_dir
+    from pinpoint_fg.io.outdir import check_output_dir
     from pinpoint_fg.sim.scenarios import simulate
 
-    prepare_output_dir(args.out, args.overwrite, "simulated run")
+    check_output_dir(args.out, args.overwrite, "simulated run")  # created by simulate, whole or not at all
     config = None
     if args.mask_spurs:
         from pinpoint_fg.sim.config import SimConfig

@@ -46,7 +46,7 @@ from factors.lie import se3_inverse, so3_log
 from pinpoint_fg.checkerboard import DEFAULT_NEEDLE_T_BOARD, BoardSpec, detect_board
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.jsonfile import load_json
-from pinpoint_fg.io.recording.schema import MAX_ABS_METRES
+from pinpoint_fg.io.recording.schema import MAX_ABS_METRES, gt_depth_problem
 
 BOARD_TO_NEEDLE_FORMAT = "pinpoint-board-to-needle"
 BOARD_TO_NEEDLE_VERSION = 1
@@ -262,6 +262,10 @@ def groundtruth_run(run: str | Path, board_to_needle: str | Path) -> GroundTruth
         if cam_T_board is None:
             continue
         cam_T_needle = cam_T_board @ board_T_needle
+        behind = gt_depth_problem(cam_T_needle)
+        if behind is not None:  # the run's reader would refuse it: name the mount, leave frames.csv as it is
+            raise InputError(f"frame {rec.frame}: {behind}; {Path(run) / 'frames.csv'} is left unchanged",
+                             file=Path(board_to_needle), column="board_T_needle")
         gt_by_frame[int(rec.frame)] = cam_T_needle
         old = rec.cam_T_needle_gt
         if old is not None:

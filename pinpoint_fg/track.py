@@ -25,6 +25,7 @@ from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.jsonfile import INT64_MAX
 from pinpoint_fg.io.outdir import prepare_output_dir
+from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.particles import MAX_PARTICLES
@@ -260,7 +261,8 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
     show = sys.stderr.isatty() if progress is None else bool(progress)
     with _thread_limit(blas_threads), ResultWriter(out, method, settings, recording.info.name,
                                                    str(Path(run).resolve()), weighted=(method in WEIGHTED_METHODS),
-                                                   smoothed=config.window > 1) as writer:
+                                                   smoothed=config.window > 1,
+                                                   recording_fingerprint=recording_fingerprint(recording)) as writer:
         for obs in tqdm(offload.observations(recording, frames), desc=f"{method} {recording.info.name}",
                         unit="frame", total=len(frames), disable=not show):
             try:

@@ -520,20 +520,23 @@ def test_a_run_given_twice_is_refused_not_pooled_twice(command: str, run: Path, 
 def test_calibrate_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
     """Before: exit 0, and the keypoint residuals of the needle's mirror image pooled into the noise file
-    (tip std 0.6 -> 42 px from one such frame of eight)."""
+    (tip std 0.6 -> 42 px from one such frame of eight). A needle centre behind the camera is now the reader's
+    refusal (``test_ground_truth_behind_the_camera_is_refused_by_the_reader``); a centre 0.5 µm in front of it
+    passes the reader, but the frame's mask shows the centre within MIN_DEPTH_M: calibrate's own check."""
     bad = tmp_path / "run"
     shutil.copytree(run, bad)
     lines = (bad / "frames.csv").read_text().splitlines()
     header = lines[0].split(",")
-    cells = lines[3].split(",")
-    cells[header.index("gt_z_m")] = str(-float(cells[header.index("gt_z_m")]))
-    lines[3] = ",".join(cells)
+    cells = lines[4].split(",")
+    assert cells[header.index("mask")]  # data row 4 (frame 3) has a mask: the centre is seen
+    cells[header.index("gt_z_m")] = "5e-07"
+    lines[4] = ",".join(cells)
     (bad / "frames.csv").write_text("\n".join(lines) + "\n")
     assert not validate_run(bad)[1]  # a valid recording: its content is what is wrong
     out = tmp_path / "noise.json"
     assert main(["calibrate", str(bad), "--out", str(out)]) == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert "frames.csv" in line and "row 3" in line and "gt_z_m" in line and "not in front" in line
+    assert "frames.csv" in line and "row 4" in line and "gt_z_m" in line and "not in front" in line
     assert not out.exists()
     assert main(["calibrate", str(run), "--out", str(out)]) == 0  # the run as simulated still calibrates
 
@@ -988,3 +991,318 @@ def test_a_hand_edited_result_method_is_located(method: str, command: str, map_r
     assert main([command, str(result), "--out", str(out)]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert str(result / "result.json") in line and "'method'" in line
+
+
+# --- fifth audit: modes.csv that lacks frames, gt behind the camera, half-written runs, huge q95 ---------------
+
+def _drop_modes_rows(modes_csv: Path, frames: set[int]) -> None:
+    lines = modes_csv.read_text().splitlines(keepends=True)
+    modes_csv.write_text("".join([lines[0], *(s for s in lines[1:] if int(s.split(",")[0]) not in frames)]))
+
+
+@pytest.mark.parametrize(("dropped", "row", "says"), [
+    ({3, 4, 5, 6, 7}, "row ", "frame 3 of estimates.csv has no modes"),  # modes.csv stops early
+    ({1}, "row ", "frame 1 of estimates.csv has no modes"),               # a frame in the middle
+    ({0, 1, 2, 3, 4, 5, 6, 7}, "", "frame 0 of estimates.csv has no modes"),  # the header only
+])
+def test_evaluate_refuses_a_modes_csv_that_lacks_frames(dropped: set[int], row: str, says: str, svn_result: Path,
+                                                        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A modes.csv missing frames of estimates.csv was evaluated on the frames it had (the truth kept by the modes
+    and the modes' bimodal share of a subset, exit 0); the format has one row per frame and mode."""
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    _drop_modes_rows(result / "modes.csv", dropped)
+    capsys.readouterr()
+    assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(result / "modes.csv") in line and row in line and "'frame'" in line and says in line
+
+
+def test_evaluate_refuses_a_modes_frame_the_estimates_lack(svn_result: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """A modes.csv row of a frame estimates.csv does not have was ignored without a word."""
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    lines = (result / "modes.csv").read_text().splitlines()
+    cells = lines[-1].split(",")
+    cells[:3] = ["99", "0", "1.0"]
+    (result / "modes.csv").write_text("\n".join([*lines, ",".join(cells)]) + "\n")
+    capsys.readouterr()
+    assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert f"row {len(lines)}:" in line and "'frame'" in line and "frame 99 is not a frame of estimates.csv" in line
+
+
+def test_an_unfinished_result_may_lack_the_modes_of_its_last_frame_only(svn_result: Path, tmp_path: Path) -> None:
+    """The writer appends a frame's modes after its estimates row: a result stopped between the two is evaluated
+    (its last frame without modes); a gap anywhere else is refused as for a finished result."""
+    from pinpoint_fg.eval.modes import modes_of_result
+
+    result = tmp_path / "res"
+    shutil.copytree(svn_result, result)
+    doc = json.loads((result / "result.json").read_text())
+    doc["complete"] = False
+    (result / "result.json").write_text(json.dumps(doc))
+    _drop_modes_rows(result / "modes.csv", {7})
+    modes = modes_of_result(read_result(result))
+    assert modes.has_modes.tolist() == [True] * 7 + [False]
+    _drop_modes_rows(result / "modes.csv", {6})
+    with pytest.raises(InputError, match="frame 6 of estimates.csv has no modes"):
+        modes_of_result(read_result(result))
+
+
+def _gt_behind(run: Path, dest: Path, row: int = 3) -> Path:
+    """A copy of ``run`` whose ground truth of data row ``row`` is mirrored through the image plane (z -> -z)."""
+    shutil.copytree(run, dest)
+    lines = (dest / "frames.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index("gt_z_m")] = str(-float(cells[header.index("gt_z_m")]))
+    lines[row] = ",".join(cells)
+    (dest / "frames.csv").write_text("\n".join(lines) + "\n")
+    return dest
+
+
+def test_ground_truth_behind_the_camera_is_refused_by_the_reader(run: Path, map_result: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A gt pose mirrored behind the camera validated, and ``evaluate`` scored the estimates against it: one such
+    frame of eight turned a 0.2 mm mean error into 10.7 mm, exit 0."""
+    bad = _gt_behind(run, tmp_path / "run")
+    errors = validate_run(bad)[1]
+    assert len(errors) == 1 and errors[0].row == 3 and errors[0].column == "gt_z_m"
+    assert "not in front of the camera" in str(errors[0])
+    capsys.readouterr()
+    assert main(["evaluate", str(map_result), "--recording", str(bad), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bad / "frames.csv") in line and "row 3" in line and "'gt_z_m'" in line
+
+
+def test_the_recording_writer_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path) -> None:
+    """What the reader refuses is not written (``groundtruth``, the importers and ``simulate`` write through it)."""
+    from pinpoint_fg.io.recording.reader import read_recording
+    from pinpoint_fg.io.recording.writer import RecordingWriter
+
+    rec = read_recording(run)
+    T = rec.frames[0].cam_T_needle_gt.copy()
+    T[2, 3] = 0.0  # in the image plane: not in front either
+    with RecordingWriter(tmp_path / "w", rec.info) as w, pytest.raises(InputError) as exc:
+        w.add(replace(rec.frames[0], cam_T_needle_gt=T, mask=None, image=None))
+    assert exc.value.column == "gt_z_m" and "not in front of the camera" in str(exc.value)
+
+
+def test_import_bop_refuses_ground_truth_behind_the_camera(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A scene_gt.json entry with the needle behind the camera was imported (exit 0) into a run whose own reader
+    then refused it; now scene_gt.json and the entry's cam_t_m2c are named before anything is written."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=3)
+    path = Path(info["scene"]) / "scene_gt.json"
+    doc = json.loads(path.read_text())
+    idx = next(i for i, e in enumerate(doc["1"]) if e["obj_id"] == NEEDLE_OBJ_ID)
+    doc["1"][idx]["cam_t_m2c"][2] = -abs(doc["1"][idx]["cam_t_m2c"][2])
+    path.write_text(json.dumps(doc))
+    out = tmp_path / "run"
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "not in front of the camera" in line
+    assert not out.exists()
+
+
+def test_import_bag_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """A bag whose gt topic puts the needle behind the camera was imported, exit 0, into a run its reader refused."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    good = tmp_path / "good.bag"
+    assert main(["export-bag", str(run), "--out", str(good), "--format", "ros1"]) == 0
+    bag = tmp_path / "bad.bag"
+    topic = None
+    with AnyReader([good]) as reader, Writer(bag) as writer:
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=reader.typestore)
+                 for c in reader.connections}
+        for conn, stamp, raw in reader.messages():
+            if conn.topic.endswith("gt_pose") and topic is None:
+                topic = conn.topic
+                msg = reader.deserialize(raw, conn.msgtype)
+                msg.pose.position.z = -msg.pose.position.z
+                raw = reader.typestore.serialize_ros1(msg, conn.msgtype)
+            writer.write(conns[conn.id], stamp, raw)
+    assert topic is not None
+    capsys.readouterr()
+    out = tmp_path / "imported"
+    assert main(["import-bag", str(bag), "--out", str(out), "--needle", str(run / "recording.json")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(bag) in line and repr(topic) in line and "not in front of the camera" in line
+    assert not out.exists()
+
+
+def test_groundtruth_refuses_a_mount_that_puts_the_needle_behind_the_camera(board_run: Path, tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """A board-to-needle mount 1 m behind the board rewrote every gt cell behind the camera (exit 0), a run its
+    reader now refuses; the mount is named and frames.csv left as it was."""
+    run = tmp_path / "run"
+    shutil.copytree(board_run, run)
+    before = (run / "frames.csv").read_bytes()
+    b2n = write_board_to_needle(tmp_path / "b2n.json")
+    doc = json.loads(b2n.read_text())
+    from pinpoint_fg.io.recording.reader import read_recording
+
+    gt0 = read_recording(run).frames[0].cam_T_needle_gt  # = cam_T_board @ board_T_needle in frame 0
+    back = np.eye(4)
+    back[2, 3] = -0.5  # the needle moved 0.5 m along the camera's axis towards it: behind the camera
+    doc["board_T_needle"] = (np.array(doc["board_T_needle"]) @ np.linalg.inv(gt0) @ back @ gt0).tolist()
+    b2n.write_text(json.dumps(doc))
+    assert main(["groundtruth", str(run), "--board-to-needle", str(b2n)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(b2n) in line and "'board_T_needle'" in line and "not in front of the camera" in line
+    assert (run / "frames.csv").read_bytes() == before
+
+
+def test_import_bop_that_fails_half_way_leaves_no_run_behind(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A mask PNG of the third image cut short: the import stopped there (one line, exit 2) but left OUT as a valid
+    run of the first two frames, which every later command read as the scene. Now OUT is not created; with
+    --overwrite over an earlier run, that run is left as it was."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=3)
+    argv = ["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID)]
+    earlier = tmp_path / "earlier"
+    assert main([*argv, "--out", str(earlier)]) == 0
+    before = {str(p.relative_to(earlier)): p.read_bytes() for p in earlier.rglob("*") if p.is_file()}
+    mask = Path(info["scene"]) / "mask_visib" / "000002_000001.png"
+    mask.write_bytes(mask.read_bytes()[:12])
+    capsys.readouterr()
+    out = tmp_path / "new" / "run"
+    assert main([*argv, "--out", str(out)]) == 2
+    assert str(mask) in _one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "new").exists()  # nor the parent it would have created
+    assert main([*argv, "--out", str(earlier), "--overwrite"]) == 2
+    assert {str(p.relative_to(earlier)): p.read_bytes() for p in earlier.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dataset", "earlier"]  # no staging directory left
+
+
+def test_simulate_that_fails_leaves_no_directory_behind(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """``simulate --frames 100000000000`` (out of memory) left an empty --out; a failure while writing left a
+    shorter run. Neither leaves anything now, and a successful run with --overwrite keeps other files."""
+    from pinpoint_fg.io.recording.writer import RecordingWriter
+    from pinpoint_fg.sim import scenarios
+
+    out = tmp_path / "s"
+    assert main(["simulate", "--scenario", "normal", "--frames", "100000000000", "--out", str(out)]) == 2
+    assert _one_error_line(capsys.readouterr().err).startswith("error: out of memory")
+    assert not out.exists()
+
+    add = RecordingWriter.add
+
+    def fails_at_frame_3(self, frame, mask=None, image=None):  # noqa: ANN001, ANN202
+        if frame.frame == 3:
+            raise MemoryError("Unable to allocate the image of frame 3")
+        return add(self, frame, mask=mask, image=image)
+
+    monkeypatch.setattr(RecordingWriter, "add", fails_at_frame_3)
+    assert main(["simulate", "--scenario", "normal", "--frames", "6", "--out", str(out)]) == 2
+    assert "frame 3" in _one_error_line(capsys.readouterr().err)
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == []
+    monkeypatch.setattr(RecordingWriter, "add", add)
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["simulate", "--scenario", "normal", "--frames", "4", "--out", str(out), "--overwrite"]) == 0
+    assert (out / "notes.txt").read_text() == "mine" and len(validate_run(out)[0].frames) == 4
+    assert scenarios.simulate("normal", 4, out=tmp_path / "api") == tmp_path / "api"
+    assert (tmp_path / "api" / "frames.csv").read_bytes() == (out / "frames.csv").read_bytes()
+
+
+@pytest.mark.parametrize("column", ["q95_trans_m", "q95_rot_rad"])
+def test_a_huge_q95_is_located_and_a_large_one_scores_finitely(column: str, svn_result: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A hand-edited q95 of 1e300 (finite) printed NumPy's "overflow encountered in square" on stderr and wrote
+    NLL-S = inf to summary.csv, exit 0. Beyond MAX_RESULT_Q95 it is now refused at its row; up to it, evaluate's
+    numbers stay finite and quiet."""
+    import csv
+
+    from pinpoint_fg.io.result.schema import MAX_RESULT_Q95
+
+    for cell, code in (("1e300", 2), (repr(MAX_RESULT_Q95), 0)):
+        result = tmp_path / f"res{code}"
+        shutil.copytree(svn_result, result)
+        _edit_cell(result / "estimates.csv", 3, column, cell)
+        capsys.readouterr()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            assert main(["evaluate", str(result), "--out", str(tmp_path / f"ev{code}")]) == code
+        err = capsys.readouterr().err
+        if code:
+            line = _one_error_line(err)
+            assert str(result / "estimates.csv") in line and "row 3" in line and repr(column) in line
+        else:
+            assert not err.strip()
+            with open(tmp_path / "ev0" / "summary.csv") as f:
+                row = next(csv.DictReader(f))
+            kind = "trans" if "trans" in column else "rot"
+            assert all(np.isfinite(float(row[k])) for k in (f"nlls_{kind}", f"is_{kind}", f"{kind}_q95_"
+                                                            + ("mm" if kind == "trans" else "deg")))
+
+
+def test_the_result_writer_refuses_a_q95_the_reader_refuses(tmp_path: Path) -> None:
+    """What the reader refuses is not written (``track`` stops at that frame, its finished frames kept)."""
+    from pinpoint_fg.io.result.schema import MAX_RESULT_Q95
+    from tests.test_io_result import make_estimates, open_writer
+
+    est = make_estimates(1)[0]
+    with open_writer(tmp_path / "r") as w, pytest.raises(ValueError, match="beyond the result format"):
+        w.write(replace(est, q95_rot_rad=2 * MAX_RESULT_Q95))
+
+
+@pytest.fixture(scope="module")
+def namesake(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A run named 'normal-01' like ``run`` (same scenario, seed and frames) but of other content (spurs in its masks,
+    no images): every frame of a result of ``run`` is one of its frames."""
+    out = tmp_path_factory.mktemp("audit5") / "other" / "normal-01"
+    assert main(["simulate", "--scenario", "normal", "--frames", "8", "--seed", "1", "--mask-spurs", "0.5",
+                 "--out", str(out)]) == 0
+    return out
+
+
+def test_evaluate_refuses_two_recordings_of_one_name(run: Path, namesake: Path, map_result: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Results of two different recordings named alike were evaluated together, exit 0: tables, figure files and
+    the MHT reference are keyed by the name, so one recording's reference judged the other's frames and one figure
+    overwrote the other. Refused; results of two copies of one recording are still evaluated together."""
+    other = tmp_path / "res-other"
+    assert main(["track", str(namesake), "--method", "map", "--out", str(other)]) == 0
+    copy = tmp_path / "copy" / run.name
+    shutil.copytree(run, copy)
+    on_copy = tmp_path / "res-copy"
+    assert main(["track", str(copy), "--method", "map", "--out", str(on_copy)]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(map_result), str(other), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(other / "result.json") in line and "'recording_name'" in line and "both named 'normal-01'" in line
+    assert main(["evaluate", str(map_result), str(on_copy), "--out", str(tmp_path / "ev2")]) == 0
+
+
+def test_evaluate_refuses_a_recording_of_the_same_name_and_other_content(run: Path, namesake: Path, map_result: Path,
+                                                                        tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """``evaluate RES --recording OTHER`` with OTHER named like RES's recording was scored against OTHER's ground
+    truth, exit 0 (only the names were compared). track now records the recording's fingerprint; a result written
+    before it is compared with the recording at its recording_path when that still exists."""
+    capsys.readouterr()
+    assert main(["evaluate", str(map_result), "--recording", str(namesake), "--out", str(tmp_path / "ev")]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(map_result / "result.json") in line and "'recording_fingerprint'" in line and "differs" in line
+    legacy = tmp_path / "legacy"
+    shutil.copytree(map_result, legacy)
+    doc = json.loads((legacy / "result.json").read_text())
+    del doc["recording_fingerprint"]
+    (legacy / "result.json").write_text(json.dumps(doc))
+    assert main(["evaluate", str(legacy), "--recording", str(namesake), "--out", str(tmp_path / "ev")]) == 2
+    assert "'recording_path'" in _one_error_line(capsys.readouterr().err)
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)  # the same recording elsewhere (moved, copied) is fine, with or without the key
+    for res in (map_result, legacy):
+        assert main(["evaluate", str(res), "--recording", str(copy), "--out", str(tmp_path / f"ok-{res.name}")]) == 0

@@ -30,6 +30,13 @@ def make_info() -> RecordingInfo:
     return RecordingInfo(name="unit-run", frame_rate_hz=30.0, camera=cam, needle=needle, extra={"site": "bench"})
 
 
+def in_front(T: np.ndarray) -> np.ndarray:
+    """``T`` moved in front of the camera (z = |z| + 5 cm): ground truth behind it is refused by the reader."""
+    T = np.array(T, dtype=float)
+    T[2, 3] = abs(T[2, 3]) + 0.05
+    return T
+
+
 def make_frames(n: int = 6, seed: int = 0):
     """Frames with every group present on some rows and missing on others, plus masks and images."""
     rng = np.random.default_rng(seed)
@@ -44,7 +51,7 @@ def make_frames(n: int = 6, seed: int = 0):
                 tip_px=rng.normal(20.0, 5.0, size=2) if i % 2 == 0 else None,
                 tail_px=rng.normal(20.0, 5.0, size=2) if i % 3 != 1 else None,
                 cam_T_grasper=se3_exp(rng.normal(size=6) * 0.3) if i != 4 else None,
-                cam_T_needle_gt=se3_exp(rng.normal(size=6) * 0.3) if i < 4 else None,
+                cam_T_needle_gt=in_front(se3_exp(rng.normal(size=6) * 0.3)) if i < 4 else None,
                 occlusion=labels[i % 4],
             )
         )
@@ -199,7 +206,8 @@ def test_replace_ground_truth_keeps_every_other_cell(run) -> None:
     with open(root / "frames.csv", newline="") as f:
         old = list(csv.reader(f))
     rng = np.random.default_rng(5)
-    new_gt = {frames[0].frame: se3_exp(rng.normal(size=6)), frames[1].frame: None, frames[5].frame: np.eye(4)}
+    new_gt = {frames[0].frame: in_front(se3_exp(rng.normal(size=6))), frames[1].frame: None,
+              frames[5].frame: in_front(np.eye(4))}
     replace_ground_truth(root, new_gt)
     with open(root / "frames.csv", newline="") as f:
         new = list(csv.reader(f))
@@ -210,7 +218,7 @@ def test_replace_ground_truth_keeps_every_other_cell(run) -> None:
     rec = read_recording(root)
     np.testing.assert_allclose(rec.frames[0].cam_T_needle_gt, new_gt[frames[0].frame], atol=2e-15)
     assert rec.frames[1].cam_T_needle_gt is None
-    np.testing.assert_array_equal(rec.frames[5].cam_T_needle_gt, np.eye(4))
+    np.testing.assert_array_equal(rec.frames[5].cam_T_needle_gt, in_front(np.eye(4)))
     # untouched frames keep their ground truth
     np.testing.assert_allclose(rec.frames[2].cam_T_needle_gt, frames[2].cam_T_needle_gt, atol=2e-15)
     assert not list(root.glob(".*tmp"))
@@ -230,10 +238,13 @@ def test_replace_ground_truth_adds_missing_columns(tmp_path: Path) -> None:
 
     rewrite_csv(root, drop_gt)
     assert read_recording(root).frames[1].cam_T_needle_gt is None
-    replace_ground_truth(root, {1: np.eye(4)})
+    replace_ground_truth(root, {1: in_front(np.eye(4))})
     rec = read_recording(root)
     assert rec.frames[0].cam_T_needle_gt is None
-    np.testing.assert_array_equal(rec.frames[1].cam_T_needle_gt, np.eye(4))
+    np.testing.assert_array_equal(rec.frames[1].cam_T_needle_gt, in_front(np.eye(4)))
+    with pytest.raises(InputError, match="not in front of the camera"):  # what the reader refuses is not written
+        replace_ground_truth(root, {1: np.eye(4)})
+    np.testing.assert_array_equal(read_recording(root).frames[1].cam_T_needle_gt, in_front(np.eye(4)))
 
 
 def test_quaternion_close_to_unit_is_normalised(run) -> None:

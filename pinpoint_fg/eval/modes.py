@@ -3,7 +3,8 @@
 Per result (frame axis first):
 
 * **mode weights** ``(F, K)`` sorted per frame, zero-padded, NaN rows for frames without modes:
-  from the result's ``modes.csv`` (:func:`pinpoint_fg.io.result.read_modes`); a result written
+  from the result's ``modes.csv`` (:func:`pinpoint_fg.io.result.read_modes`), which must cover the frames of
+  ``estimates.csv`` (:func:`~pinpoint_fg.io.result.reader.check_modes_cover`); a result written
   before modes.csv existed has them recomputed from its particles
   (:func:`pinpoint_fg.posterior.summary.modes_from_particles`; a single particle is one mode).
 * **modes verdict** per frame: the second mode weighs at least 0.1
@@ -33,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.io.result.reader import read_modes
+from pinpoint_fg.io.result.reader import check_modes_cover, read_modes
 from pinpoint_fg.io.result.schema import MAX_MODES, MODES_CSV, ModeHistory, Result
 from pinpoint_fg.posterior.summary import BIMODAL_MODE_WEIGHT, modes_from_particles
 
@@ -71,6 +72,7 @@ def modes_of_result(res: Result, k: int = MAX_MODES) -> ResultModes:
     empty = np.zeros((0, 4, 4))
     if (res.root / MODES_CSV).exists():
         hist: ModeHistory = read_modes(res.root)
+        check_modes_cover(hist, res)  # a frame without its modes was left out of the modes figures, silently
         pos = {int(f): i for i, f in enumerate(res.frame)}
         peaks = [empty] * F
         for f in hist.frames:

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -61,9 +62,10 @@ from pinpoint_fg.eval.modes import (
     truth_kept,
 )
 from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
+from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording, json_shown
-from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
+from pinpoint_fg.io.result.reader import check_tracked_on, expand_result_dirs, read_result, recording_of
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
 from pinpoint_fg.likelihood import MeasurementModel, Switches
@@ -219,7 +221,28 @@ def _recording_for(res: Result, given: Recording | None, cache: dict[Path, Recor
             f"result is of recording {res.info.get('recording_name')!r}, the recording is {given.info.name!r}",
             file=res.root / "result.json", column="recording_name",
         )
+    check_tracked_on(res, given)
     return given
+
+
+def _refuse_namesakes(pairs: Sequence[tuple[Result, Recording]]) -> None:
+    """:class:`InputError` naming ``result.json``'s ``recording_name`` when the result's recording shares its name with
+    another recording of the evaluation but not its content (:func:`recording_fingerprint` with the ground truth).
+
+    Tables, figures (their file names), labels and the multi-hypothesis reference are keyed by the recording's name:
+    two scenes ``000001`` of two BOP datasets were mixed silently (the reference of one judged the other's frames,
+    one figure overwrote the other). Copies of one recording (same content, other paths) are fine.
+    """
+    first: dict[str, Recording] = {}
+    for res, rec in pairs:
+        other = first.setdefault(rec.info.name, rec)
+        if other is rec or os.path.realpath(other.root) == os.path.realpath(rec.root):
+            continue
+        if recording_fingerprint(other, truth=True) != recording_fingerprint(rec, truth=True):
+            raise InputError(f"its recording {rec.root} and {other.root} (of another result here) are both named "
+                             f"{rec.info.name!r} but differ; the evaluation keys tables, figures and the reference "
+                             "by that name: evaluate them separately, or rename one (recording.json \"name\")",
+                             file=res.root / "result.json", column="recording_name")
 
 
 def _rows_in_recording(res: Result, recording: Recording) -> np.ndarray:
@@ -745,6 +768,7 @@ def evaluate_results(
         model = MeasurementModel(rec.info.camera, rec.info.needle, noise, sw)
         key = (str(rec.root.resolve()), noise_key, tuple(d for d in disabled if d != "motion"))
         loaded.append((res, rec, model, key))
+    _refuse_namesakes([(res, rec) for res, rec, _, _ in loaded])
 
     refs: dict[str, Reference] = {}  # read before the long computations: a wrong one costs nothing
     if reference is not None:
@@ -758,8 +782,12 @@ def evaluate_results(
             raise InputError(f"the reference is of recording {ref_name!r}, but the results are of "
                              f"{', '.join(map(repr, names_evaluated))}", file=ref_res.root / "result.json",
                              column="recording_name")
+        check_tracked_on(ref_res, next(rec for _, rec, _, _ in loaded if rec.info.name == ref_name))
         rm = modes_of_result(ref_res)
         refs[ref_name] = (str(ref_res.root), ref_res.frame, rm.weights)
+
+    say("modes")  # before the long computations too: a modes.csv that lacks frames is refused at once
+    modes = [modes_of_result(res) for res, _, _, _ in loaded]
 
     # ΔNLL labels and floor: once per (recording, likelihood), on the union of the frames needed
     needed: dict[tuple, set[int]] = {}
@@ -773,8 +801,6 @@ def evaluate_results(
                 rec, model, config or AmbiguityConfig(), alternatives=ambiguity, frames=needed[key]
             )
 
-    say("modes")
-    modes = [modes_of_result(res) for res, _, _, _ in loaded]
     if reference is None:
         for (res, rec, _, _), m in zip(loaded, modes, strict=True):
             if res.method == "mht" and m.source == "modes.csv" and rec.info.name not in refs:

@@ -86,7 +86,7 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
+from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import (
     MAX_ABS_ANGLE_RAD,
@@ -536,8 +536,7 @@ def import_bag(
             raise InputError(f"{exc.reason} ({exc.column})", file=bag,
                              column=data[role].topic if role in data else exc.column) from None
         records.append(rec)
-    prepare_output_dir(out, overwrite, "run", inputs=(bag,))
-    with RecordingWriter(out, info) as writer:
+    with staged_output_dir(out, overwrite, "run", inputs=(bag,)) as stage, RecordingWriter(stage, info) as writer:
         for k, rec in enumerate(records):
             mask = pick("mask", k)
             mask_arr = None

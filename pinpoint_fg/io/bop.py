@@ -60,9 +60,9 @@ from factors.geometry import PinholeCamera
 from factors.lie import homogeneous
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
-from pinpoint_fg.io.outdir import check_output_dir, prepare_output_dir
+from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir
 from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
-from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
+from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo, gt_depth_problem
 from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info
 
 SCENE_CAMERA = "scene_camera.json"
@@ -248,6 +248,16 @@ def _gt_entries(path: Path, obj_id: int, instance: int | None) -> dict[int, tupl
 # --------------------------------------------------------------------------------------------
 
 
+def _check_gt_depths(gts: dict[int, tuple[int, np.ndarray]], model_T_needle: np.ndarray, path: Path) -> None:
+    """:class:`InputError` naming the ``cam_t_m2c`` of the first entry whose needle lies behind the camera, before
+    anything is written (:func:`~pinpoint_fg.io.recording.schema.gt_depth_problem`: the run's reader refuses it)."""
+    for im, (gt_idx, cam_T_model) in sorted(gts.items()):
+        problem = gt_depth_problem(cam_T_model @ model_T_needle)
+        if problem is not None:
+            raise InputError(problem, file=path,
+                             column=f"{im}[{gt_idx}].cam_t_m2c")
+
+
 def _find_image(scene: Path, im: int) -> Path:
     for d in IMAGE_DIRS:
         if (scene / d).is_dir():
@@ -327,7 +337,9 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
 
     Everything that can be checked before writing is checked first (JSON files, the model fit,
     the existence of every image and mask file); ``out`` must not exist or be empty unless ``overwrite``
-    (:func:`pinpoint_fg.io.outdir.prepare_output_dir`, called once everything has been checked).
+    (:func:`pinpoint_fg.io.outdir.check_output_dir`). The run is written into a hidden sibling of ``out`` and moved
+    into place at the end (:func:`pinpoint_fg.io.outdir.staged_output_dir`): a file that fails half-way (a corrupt
+    mask PNG) leaves no partial run behind (it was a valid run of the frames before it).
     """
     scene, model_path, out = Path(scene_dir), Path(model_path), Path(out)
     cfg = config
@@ -343,6 +355,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
                          file=model_path) from None
     cams = _camera_entries(scene / SCENE_CAMERA)
     gts = _gt_entries(scene / SCENE_GT, cfg.obj_id, cfg.instance)
+    _check_gt_depths(gts, fit.model_T_needle, scene / SCENE_GT)
     orphans = sorted(set(gts) - set(cams))
     if orphans:
         raise InputError(f"has ground truth for im_id {orphans[0]}, which {SCENE_CAMERA} does not list",
@@ -385,8 +398,7 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     check_recording_info(info, out / "recording.json", camera_source=(scene / SCENE_CAMERA, f"{ids[0]}.cam_K"))
     rng = np.random.default_rng(cfg.seed)
     n_gt = n_mask = n_kp = 0
-    prepare_output_dir(out, overwrite, "run", inputs=(scene,))
-    with RecordingWriter(out, info) as writer:
+    with staged_output_dir(out, overwrite, "run", inputs=(scene,)) as stage, RecordingWriter(stage, info) as writer:
         for im in ids:
             gt = gts.get(im)
             cam_T_needle = None if gt is None else gt[1] @ fit.model_T_needle

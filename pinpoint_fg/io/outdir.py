@@ -16,12 +16,21 @@ Rules (every subcommand that writes goes through :func:`prepare_output_dir` or
 
 Every refusal is an :class:`~pinpoint_fg.errors.InputError` naming the path (one line, exit code 2
 on the command line). The directory is created (with its parents) when the checks pass.
+
+A command whose output is only of use whole (``simulate``, ``import-bop``, ``import-bag``: a run cut short would be
+read as a shorter run) writes through :func:`staged_output_dir` instead: into a hidden sibling directory that is
+moved into place at the end, and removed, with the parents it created, when the command fails (an out-of-memory
+error, a corrupt input file met half-way, Ctrl-C). A SIGKILL can leave the hidden sibling, never a half-written
+``--out``.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+import secrets
+import shutil
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from pinpoint_fg.errors import InputError
@@ -200,3 +209,69 @@ def prepare_output_file(path: str | os.PathLike, overwrite: bool, what: str,
         why = _os_problem(exc) if isinstance(exc, OSError) else str(exc)
         raise InputError(f"--out cannot be used for the {what}: {why}", file=_short(p)) from None
     return p
+
+
+@contextmanager
+def staged_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
+                      inputs: Sequence[str | os.PathLike] = ()) -> Iterator[Path]:
+    """Yield a new hidden sibling directory of ``path`` to write the output ``what`` into; on success move its files
+    into ``path``, on any exception remove it and the parents of ``path`` it created (module docstring).
+
+    ``path`` is checked as by :func:`prepare_output_dir` (not created until the end). When it exists (empty, or with
+    ``overwrite``) the written files replace their namesakes in it and every other file is left alone, as before;
+    otherwise the sibling is renamed to ``path``. An :class:`InputError` or ``OSError`` naming a file in the sibling
+    is re-raised naming that file under ``path``.
+    """
+    out = check_output_dir(path, overwrite, what, inputs)
+    created = [d for d in out.absolute().parents if not d.exists()]
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        stage = out.parent / f".{out.name[:100]}.partial-{os.getpid()}-{secrets.token_hex(4)}"
+        stage.mkdir()
+    except OSError as exc:
+        _remove_empty(created)
+        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(out)) from None
+    try:
+        yield stage
+        _publish(stage, out)
+    except BaseException as exc:
+        shutil.rmtree(stage, ignore_errors=True)
+        _remove_empty(created)
+        if isinstance(exc, InputError | OSError):
+            _rename_staged(exc, stage, out)
+        raise
+
+
+def _publish(stage: Path, out: Path) -> None:
+    """Move the staged output into ``out``: a rename when ``out`` does not exist, else file by file (replacing)."""
+    if not (out.exists() or out.is_symlink()):
+        os.rename(stage, out)
+        return
+    for src in sorted(stage.rglob("*")):
+        if src.is_dir():
+            continue
+        dest = out / src.relative_to(stage)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(src, dest)
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+def _remove_empty(dirs: Sequence[Path]) -> None:
+    """Remove ``dirs`` (parents a command created, deepest first) that are still empty."""
+    for d in dirs:
+        try:
+            d.rmdir()
+        except OSError:
+            return
+
+
+def _rename_staged(exc: InputError | OSError, stage: Path, out: Path) -> None:
+    """Name ``out`` instead of the removed staging directory in ``exc``'s file (the file as the user will know it)."""
+    name = exc.file if isinstance(exc, InputError) else exc.filename
+    if not isinstance(name, str) or not name.startswith(str(stage)):
+        return
+    renamed = str(out) + name[len(str(stage)):]
+    if isinstance(exc, InputError):
+        exc.__init__(exc.reason, file=renamed, row=exc.row, column=exc.column)  # type: ignore[misc]
+    else:
+        exc.filename = renamed

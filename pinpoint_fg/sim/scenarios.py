@@ -802,14 +802,18 @@ def simulate(
 
     Frames are written one by one through :class:`pinpoint_fg.io.recording.RecordingWriter`;
     with ``images`` every frame also gets a rendered camera image (:func:`render_image`).
-    Same arguments, same bytes.
+    Same arguments, same bytes. The run is written into a hidden sibling of ``out`` and moved into place at the
+    end (:func:`pinpoint_fg.io.outdir.staged_output_dir`; files already in ``out`` are replaced by their
+    namesakes, others left alone): a failure half-way (out of memory, Ctrl-C) leaves neither an empty ``out`` nor
+    a shorter run that a later command would read as this one.
     """
+    from pinpoint_fg.io.outdir import staged_output_dir
     from pinpoint_fg.io.recording.writer import RecordingWriter
 
     out = Path(out)
     run, pend = _prepare(scenario, n_frames, seed, config)
     background = run_background(run) if images else None
-    with RecordingWriter(out, run.info) as writer:
+    with staged_output_dir(out, True, "simulated run") as stage, RecordingWriter(stage, run.info) as writer:
         for rec, mask, _ in _iter_frames(run, pend):
             img = render_image(run, rec.frame, background) if images else None
             writer.add(rec, mask=mask, image=img)

@@ -51,6 +51,7 @@ from pinpoint_fg.io.recording.schema import (
     FrameRecord,
     Recording,
     RecordingInfo,
+    gt_depth_problem,
     json_shown,
     path_problem,
     shown,
@@ -402,7 +403,10 @@ def _parse_row(
                 values[gname] = np.asarray(nums, dtype=float)
             else:
                 pose = _parse_pose(ctx, gcols, nums)
-                if pose is not None:
+                problem = gt_depth_problem(pose) if pose is not None and gname == "ground_truth" else None
+                if problem is not None:
+                    ctx.err(problem, "gt_z_m")
+                elif pose is not None:
                     values[gname] = pose
         elif gname in ("mask", "image"):
             rel = cell[gname]

@@ -35,6 +35,7 @@ from pinpoint_fg.io.recording.schema import (
     RECORDING_JSON,
     FrameRecord,
     RecordingInfo,
+    gt_depth_problem,
     path_problem,
     shown,
 )
@@ -66,6 +67,16 @@ def _recordable_pose(name: str, T: Any, column: str) -> np.ndarray:
     a = check_pose(name, T)
     if float(np.max(np.abs(a[:3, 3]))) > MAX_ABS_METRES:
         raise InputError(f"{name} lies beyond the format's {MAX_ABS_METRES:g} m of the camera", column=column)
+    return a
+
+
+def _recordable_gt(name: str, T: Any) -> np.ndarray:
+    """:func:`_recordable_pose` of a ground-truth pose, in front of the camera
+    (:func:`~pinpoint_fg.io.recording.schema.gt_depth_problem`): :class:`InputError` at ``gt_z_m`` otherwise."""
+    a = _recordable_pose(name, T, "gt_x_m")
+    problem = gt_depth_problem(a)
+    if problem is not None:
+        raise InputError(f"{name}: {problem}", column="gt_z_m")
     return a
 
 
@@ -112,7 +123,9 @@ def _row_cells(rec: FrameRecord) -> dict[str, str]:
                        ("cam_T_needle_gt", COLUMN_GROUPS["ground_truth"])):
         v = getattr(rec, name)
         if v is not None:
-            cells.update(zip(cols, _pose_cells(_recordable_pose(f"frame {frame}: {name}", v, cols[0])), strict=True))
+            where = f"frame {frame}: {name}"
+            T = _recordable_gt(where, v) if name == "cam_T_needle_gt" else _recordable_pose(where, v, cols[0])
+            cells.update(zip(cols, _pose_cells(T), strict=True))
     for name in ("mask", "image"):
         v = getattr(rec, name)
         if v is not None:
@@ -320,7 +333,7 @@ def replace_ground_truth(run_dir: str | Path, gt_by_frame: dict[int, np.ndarray 
     csv_path = Path(run_dir) / FRAMES_CSV
     gt_cols = COLUMN_GROUPS["ground_truth"]
     new_cells = {
-        int(k): (None if v is None else _pose_cells(_recordable_pose(f"ground truth of frame {k}", v, "gt_x_m")))
+        int(k): (None if v is None else _pose_cells(_recordable_gt(f"ground truth of frame {k}", v)))
         for k, v in gt_by_frame.items()
     }
     try:

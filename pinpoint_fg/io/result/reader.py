@@ -18,6 +18,7 @@ import numpy as np
 from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError, path_argument, path_list
 from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.recording.fingerprint import FINGERPRINT_KEY, recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, Recording, json_shown, shown
 from pinpoint_fg.io.result.particles import read_journal, read_npz
@@ -28,6 +29,7 @@ from pinpoint_fg.io.result.schema import (
     ESTIMATES_CSV,
     MAX_ABS_RESULT_METRES,
     MAX_MODES,
+    MAX_RESULT_Q95,
     MODE_COLUMNS,
     MODE_WEIGHT_SUM_TOL,
     MODES_CSV,
@@ -248,6 +250,9 @@ def read_result(out_dir: str | Path) -> Result:
             arr[r - 1] = _num(est_path, r, c, cells[idx[c]], allow_nan=True)
             if arr[r - 1] < 0:  # a radius and a duration: the writer never writes a negative one
                 raise InputError(f"must not be negative, got {shown(cells[idx[c]])}", file=est_path, row=r, column=c)
+            if c != "latency_ms" and arr[r - 1] > MAX_RESULT_Q95:  # its square overflowed in evaluate
+                raise InputError(f"{shown(cells[idx[c]])} is beyond the result format's {MAX_RESULT_Q95:g}",
+                                 file=est_path, row=r, column=c)
         b = cells[idx["bimodal"]]
         if b not in ("0", "1"):
             raise InputError(f"must be 0 or 1, got {shown(b)}", file=est_path, row=r, column="bimodal")
@@ -393,6 +398,33 @@ def read_modes(out_dir: str | Path) -> ModeHistory:
                        cov_xi=cov[:keep])
 
 
+def check_modes_cover(hist: ModeHistory, res: Result) -> None:
+    """:class:`InputError` naming modes.csv's row and ``frame`` unless its frames are those of ``estimates.csv``.
+
+    Decision (``RECORDING_FORMAT.md``: "one row per frame and mode", written frame by frame like
+    ``estimates.csv``): every frame of the estimates has its modes, and modes.csv has no frame the estimates lack.
+    A modes.csv missing frames was evaluated on the frames it had (the truth-kept and bimodal shares of a subset,
+    exit 0). The writer appends a frame's modes after its estimates row, so a result whose writer never closed may
+    lack the modes of its last estimates frame only; that frame is then left without modes.
+    """
+    path = res.root / MODES_CSV
+    have = np.unique(hist.frame)
+    frames = res.frame if res.complete or len(res.frame) == 0 else res.frame[:-1]
+    extra = np.nonzero(~np.isin(hist.frame, res.frame))[0]
+    if extra.size:
+        pos = int(extra[0])
+        raise InputError(f"frame {int(hist.frame[pos])} is not a frame of {ESTIMATES_CSV}", file=path,
+                         row=pos + 1, column="frame")
+    missing = frames[~np.isin(frames, have)]
+    if missing.size:
+        f = int(missing[0])
+        later = np.nonzero(hist.frame > f)[0]
+        row = int(later[0]) + 1 if later.size else len(hist.frame)
+        where = "before this row" if later.size else "after the last row" if len(hist.frame) else "(no data rows)"
+        raise InputError(f"frame {f} of {ESTIMATES_CSV} has no modes {where} (every frame has 1 to {MAX_MODES} "
+                         f"modes; {missing.size} frame(s) missing)", file=path, row=row or None, column="frame")
+
+
 def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> Recording:
     """The recording ``result.json`` names (``recording_path``; relative: to the result), read once per path.
 
@@ -417,4 +449,41 @@ def recording_of(res: Result, cache: dict[Path, Recording], hint: str = "") -> R
     if str(res.info.get("recording_name")) != rec.info.name:
         raise InputError(f"result is of recording {res.info.get('recording_name')!r}, the recording is "
                          f"{rec.info.name!r}", file=res.root / "result.json", column="recording_name")
+    check_tracked_on(res, rec)
     return rec
+
+
+def _fingerprint_at_recorded_path(res: Result, rec: Recording) -> str | None:
+    """The fingerprint of the recording ``res``'s ``recording_path`` names, when that is another readable directory
+    than ``rec``'s (a result written before ``recording_fingerprint`` existed); else None."""
+    text = res.info.get("recording_path")
+    if not text:
+        return None
+    p = Path(str(text))
+    if not p.is_absolute() and not p.exists():
+        p = res.root / p
+    if not p.is_dir() or os.path.realpath(p) == os.path.realpath(rec.root):
+        return None
+    try:
+        return recording_fingerprint(read_recording(p))
+    except InputError:  # moved, replaced or damaged since: the name is all there is to check
+        return None
+
+
+def check_tracked_on(res: Result, rec: Recording) -> None:
+    """:class:`InputError` naming ``result.json``'s ``recording_fingerprint`` when ``rec`` is not the recording ``res``
+    was tracked on: same name, other content (:mod:`pinpoint_fg.io.recording.fingerprint`; a run re-simulated with
+    other options into the same directory, or another dataset's scene ``000001``). It was scored against that
+    recording's ground truth, exit 0. A result written before the key existed is compared with the recording its
+    ``recording_path`` names when that is another readable directory, else only its name is checked."""
+    recorded, key = res.info.get(FINGERPRINT_KEY), FINGERPRINT_KEY
+    if recorded is None:
+        recorded, key = _fingerprint_at_recorded_path(res, rec), "recording_path"
+        if recorded is None:
+            return
+    path = res.root / "result.json"
+    if not isinstance(recorded, str):
+        raise InputError(f"must be a string, got {json_shown(recorded)}", file=path, column=key)
+    if recorded != recording_fingerprint(rec):
+        raise InputError(f"the recording {rec.root} is named {rec.info.name!r} like the one this result was tracked "
+                         "on, but its content differs (camera, needle, observations or masks)", file=path, column=key)

@@ -17,7 +17,8 @@ A result is a directory::
 ``weighted`` (bool: particles.npz has ``weight``), ``smoothed`` (bool: smoothed.csv exists),
 ``complete`` (bool: false until the writer was closed normally). The writer also records
 ``frames`` (count, at close) and ``particles`` (N, at close), and ``stopped`` (the exception's
-class name) when the run ended with an exception.
+class name) when the run ended with an exception; ``track`` adds ``recording_fingerprint``
+(:mod:`pinpoint_fg.io.recording.fingerprint`).
 
 Crash safety. Every CSV/TUM row is flushed as it is written. ``particles.npz`` cannot be
 appended to (its arrays are stacked over frames), so it is rewritten whole, atomically
@@ -37,7 +38,7 @@ deleted once the final npz is in place. Trade-off: after a crash an outside tool
 Numbers are written with ``repr`` (shortest exact text); poses as ``x y z qw qx qy qz`` with a
 unit quaternion (w >= 0), read back within ~1e-16 of the matrix written. NaN is allowed (written
 ``nan``) in ``q95_*``, ``latency_ms`` and extra columns, nowhere else; ``q95_*`` and ``latency_ms`` are never
-negative. Rows in error messages are
+negative and at most :data:`MAX_RESULT_Q95`. Rows in error messages are
 1-based data rows (header not counted); for particles.npz the row is the 1-based frame position.
 """
 
@@ -72,6 +73,13 @@ MAX_MODES = 4
 #: camera (a diverged tracker's estimate is still written and scored) but bounded: a hand-edited ``1e300`` overflowed
 #: the evaluation's squares (``evaluate``: LinAlgError traceback). The writer refuses what the reader refuses.
 MAX_ABS_RESULT_METRES = 1e6
+#: Largest ``q95_trans_m`` (m) and ``q95_rot_rad`` (rad) a result holds. Decision: refused by the reader (and the
+#: writer) rather than scored: a hand-edited ``1e300`` overflowed the evaluation's squares (NumPy's RuntimeWarning on
+#: stderr, then NLL-S ``inf`` in summary.csv). Bound far above any real spread: particles lie within
+#: :data:`MAX_ABS_RESULT_METRES` (a spread of at most ~3.5e6 m, or a few radians), times a spread-scale factor <=
+#: 1e6 (``track --spread-scale``), and low enough that evaluation's own scaling (another factor <= 1e6, mm / deg)
+#: squares finitely.
+MAX_RESULT_Q95 = 1e15
 #: The 21 upper-triangle covariance columns ``cov_ij`` (0 <= i <= j <= 5) of modes.csv, row by row.
 COV_COLUMNS = tuple(f"cov_{i}{j}" for i in range(6) for j in range(i, 6))
 #: The columns of modes.csv.

@@ -15,6 +15,7 @@ import numpy as np
 import pinpoint_fg
 from factors.geometry import xyz_quat_from_pose
 from pinpoint_fg.estimate import Estimate
+from pinpoint_fg.io.recording.fingerprint import FINGERPRINT_KEY
 from pinpoint_fg.io.recording.writer import atomic_write_text, check_pose
 from pinpoint_fg.io.result.particles import ParticleWriter
 from pinpoint_fg.io.result.schema import (
@@ -23,6 +24,7 @@ from pinpoint_fg.io.result.schema import (
     ESTIMATES_CSV,
     MAX_ABS_RESULT_METRES,
     MAX_MODES,
+    MAX_RESULT_Q95,
     MODE_COLUMNS,
     MODE_WEIGHT_SUM_TOL,
     MODES_CSV,
@@ -145,6 +147,7 @@ class ResultWriter:
         weighted: bool = False,
         smoothed: bool = False,
         *,
+        recording_fingerprint: str | None = None,
         npz_large_bytes: int = 64_000,
         npz_min_interval_s: float = 2.0,
     ) -> None:
@@ -165,6 +168,8 @@ class ResultWriter:
             "smoothed": self.smoothed,
             "complete": False,
         }
+        if recording_fingerprint is not None:  # the recording's identity beyond its name (io.recording.fingerprint)
+            self._info[FINGERPRINT_KEY] = str(recording_fingerprint)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         for name in (ESTIMATES_CSV, PARTICLES_NPZ, TRAJECTORY_TUM, SMOOTHED_CSV, PARTICLES_JOURNAL, MODES_CSV):
             (self.out_dir / name).unlink(missing_ok=True)
@@ -213,8 +218,11 @@ class ResultWriter:
         _scalar(f"frame {f}: t_s", est.t_s, allow_nan=False)
         _result_pose(f"frame {f}: cam_T_needle", est.cam_T_needle)
         for name in ("q95_trans_m", "q95_rot_rad", "latency_ms"):
-            if _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True) < 0:  # the reader refuses it
+            value = _scalar(f"frame {f}: {name}", getattr(est, name), allow_nan=True)
+            if value < 0:  # the reader refuses it
                 raise ValueError(f"frame {f}: {name} must not be negative, got {getattr(est, name)!r}")
+            if name != "latency_ms" and value > MAX_RESULT_Q95:  # the reader refuses it (MAX_RESULT_Q95)
+                raise ValueError(f"frame {f}: {name} {value:.3g} is beyond the result format's {MAX_RESULT_Q95:g}")
         if not isinstance(est.bimodal, bool | np.bool_) and est.bimodal not in (0, 1):
             raise ValueError(f"frame {f}: bimodal must be a bool, got {est.bimodal!r}")
         it = est.iterations

@@ -176,10 +176,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pinpoint_fg.eval.report import evaluate
-    from pinpoint_fg.io.outdir import prepare_output_dir
+    from pinpoint_fg.io.outdir import check_output_dir
 
-    prepare_output_dir(args.out, args.overwrite, "evaluation",
-                       inputs=[*args.results, *([args.recording] if args.recording else [])])
+    # checked here, created by evaluate once its inputs are read: a refused input leaves no empty --out behind
+    check_output_dir(args.out, args.overwrite, "evaluation",
+                     inputs=[*args.results, *([args.recording] if args.recording else [])])
     summary = evaluate(args.results, recording=args.recording, out=args.out, reference=args.reference,
                        spread_scale=args.spread_scale)
     print(summary)

@@ -1016,6 +1016,7 @@ def test_evaluate_refuses_a_modes_csv_that_lacks_frames(dropped: set[int], row: 
     assert main(["evaluate", str(result), "--out", str(tmp_path / "ev")]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert str(result / "modes.csv") in line and row in line and "'frame'" in line and says in line
+    assert not (tmp_path / "ev").exists()  # refused before --out is made: nothing left behind
 
 
 def test_evaluate_refuses_a_modes_frame_the_estimates_lack(svn_result: Path, tmp_path: Path,

@@ -62,6 +62,7 @@ from pinpoint_fg.eval.modes import (
     truth_kept,
 )
 from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
+from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording, json_shown
@@ -741,7 +742,6 @@ def evaluate_results(
     if not results:
         raise InputError("no results to evaluate")
     out = path_argument("out", out)  # None was pathlib's TypeError, naming no argument
-    out.mkdir(parents=True, exist_ok=True)
     say = progress or (lambda _msg: None)
     given = read_recording(recording) if recording is not None else None
     cache: dict[Path, Recording] = {}
@@ -788,6 +788,8 @@ def evaluate_results(
 
     say("modes")  # before the long computations too: a modes.csv that lacks frames is refused at once
     modes = [modes_of_result(res) for res, _, _, _ in loaded]
+    # created only now that every input has been read: a refused one leaves no empty ``out`` behind
+    out = prepare_output_dir(out, True, "evaluation")
 
     # ΔNLL labels and floor: once per (recording, likelihood), on the union of the frames needed
     needed: dict[tuple, set[int]] = {}

@@ -3,7 +3,9 @@
 Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR`` (e.g. the runs of ``pinpoint-fg simulate``
 for each scenario with another ``--seed`` than the benchmark's). Each run is tracked as ``track`` would (the
 recording's ``suggested_disable``, seed 0), one method after the other, in this process; "kept" = some particle
-within 2 mm / 10 deg of the truth, "bimodal" = the modes verdict (second mode >= 0.1).
+within 2 mm / 10 deg of the truth, "bimodal" = the modes verdict (second mode >= 0.1). Last, per scenario (a run's
+name without its ``-SEED`` suffix, as ``pinpoint-fg simulate`` names runs) and method, the means of those columns
+over the scenario's runs.
 """
 
 from __future__ import annotations
@@ -15,16 +17,29 @@ from pinpoint_fg.experiments.compare import score_run
 from pinpoint_fg.io.recording import read_recording
 from pinpoint_fg.track import make_tracker, suggested_disable, tracker_config
 
+METHODS = ("svn", "map", "mht")
+
 
 def main(root: Path) -> None:
-    print(f"{'run':<16} {'method':<6} {'trans mm':>8} {'rot deg':>8} {'kept':>6} {'bimodal':>8}")
+    header = f"{'method':<6} {'trans mm':>8} {'rot deg':>8} {'kept':>6} {'bimodal':>8}"
+    print(f"{'run':<16} {header}")
+    scores: dict[str, dict[str, list]] = {}
     for run in sorted(p for p in root.iterdir() if (p / "recording.json").exists()):
         rec = read_recording(run)
-        for method in ("svn", "map", "mht"):
+        scenario = run.name.rsplit("-", 1)[0] if run.name.rsplit("-", 1)[-1].isdigit() else run.name
+        for method in METHODS:
             config = tracker_config(rec, method, disable=suggested_disable(run), seed=0)
             sc = score_run(rec, make_tracker(method, config))
+            scores.setdefault(scenario, {}).setdefault(method, []).append(sc)
             print(f"{run.name:<16} {method:<6} {sc.trans_mm:8.2f} {sc.rot_deg:8.1f} {sc.kept:6.1%} {sc.bimodal:8.1%}",
                   flush=True)
+    print(f"\nmeans per scenario\n{'scenario':<12} {'runs':>4} {header}")
+    for scenario, by_method in scores.items():
+        for method in METHODS:
+            runs = by_method.get(method, [])
+            mean = [sum(getattr(r, k) for r in runs) / len(runs) for k in ("trans_mm", "rot_deg", "kept", "bimodal")]
+            print(f"{scenario:<12} {len(runs):4d} {method:<6} {mean[0]:8.2f} {mean[1]:8.1f} {mean[2]:6.1%} "
+                  f"{mean[3]:8.1%}")
 
 
 if __name__ == "__main__":

@@ -30,12 +30,17 @@ from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
 from pinpoint_fg.noise import NoiseConfig
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("bad-input") / "run"
-    assert main(["simulate", "--scenario", "normal", "--frames", "8", "--seed", "1", "--images",
+def _simulated(tmp_path_factory: pytest.TempPathFactory, where: str, scenario: str, frames: int, seed: int) -> Path:
+    """A simulated run with images, made through the CLI (the module fixtures' runs)."""
+    out = tmp_path_factory.mktemp(where) / "run"
+    assert main(["simulate", "--scenario", scenario, "--frames", str(frames), "--seed", str(seed), "--images",
                  "--out", str(out)]) == 0
     return out
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _simulated(tmp_path_factory, "bad-input", "normal", 8, 1)
 
 
 def _one_error_line(err: str) -> str:
@@ -766,10 +771,7 @@ def test_out_that_is_the_input_directory_is_refused(command: str, run: Path, map
 @pytest.fixture(scope="module")
 def board_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A simulated run whose images show the ground-truth checkerboard (and which has ground truth)."""
-    out = tmp_path_factory.mktemp("audit4") / "calib"
-    assert main(["simulate", "--scenario", "calibration", "--frames", "3", "--seed", "2", "--images",
-                 "--out", str(out)]) == 0
-    return out
+    return _simulated(tmp_path_factory, "audit4", "calibration", 3, 2)
 
 
 def test_groundtruth_that_finds_no_board_keeps_the_runs_ground_truth(board_run: Path, tmp_path: Path,

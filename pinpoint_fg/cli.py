@@ -499,7 +499,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``pinpoint-fg`` console script."""
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        return _run(args)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -525,6 +525,17 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The chosen subcommand; the worker pools it stopped have shut down when it returns (a race at interpreter
+    exit otherwise: :func:`pinpoint_fg.offload.join_stopped_workers`)."""
+    try:
+        return int(args.func(args) or 0)
+    finally:
+        offload = sys.modules.get("pinpoint_fg.offload")  # imported only by the commands that start workers
+        if offload is not None:
+            offload.join_stopped_workers()
 
 
 if __name__ == "__main__":

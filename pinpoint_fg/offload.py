@@ -41,6 +41,24 @@ OBSERVE_AHEAD = 3
 #: this many rows shared between two processes (a verdict takes 20-30 ms).
 INLINE_BACKLOG = 30
 
+#: Manager threads of worker pools :meth:`Offload.close` left shutting down (see :func:`join_stopped_workers`).
+_STOPPING: list[threading.Thread] = []
+
+
+def join_stopped_workers(timeout_s: float = 30.0) -> None:
+    """Wait until the worker pools that :meth:`Offload.close` stopped without waiting have shut down.
+
+    The command-line entry point calls this before returning. The interpreter waits for those pools at exit
+    anyway. But its exit hook in ``concurrent.futures`` wakes each pool's manager thread through a pipe, and it
+    does so without the pool's lock, while that thread may be closing the pipe. The run was then complete and
+    on disk, but it printed an ``OSError: [Errno 9] Bad file descriptor`` traceback (seen once in ~40 runs; a
+    known race: CPython gh-83279 / bpo-39098). After this call no pool of ours is left shutting down, so the
+    exit hook has nothing to race with. It costs nothing: the process would wait for the same threads at exit.
+    """
+    deadline = time.monotonic() + timeout_s
+    while _STOPPING:
+        _STOPPING.pop().join(max(0.0, deadline - time.monotonic()))
+
 
 def bimodality_verdict(particles: np.ndarray, T_map: np.ndarray, weights: np.ndarray | None) -> bool:
     """The GMM bimodality verdict of a particle set (False below 6 particles: nothing to judge)."""
@@ -144,9 +162,12 @@ class Offload:
     def __init__(self, workers: int, max_points: int) -> None:
         self.max_points = max_points
         self.pool = self.observer = None
+        self._managers: list[threading.Thread] = []
         if workers > 0:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
+
+            before = set(threading.enumerate())
 
             ctx = mp.get_context("spawn")
             self.observer = ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),))
@@ -155,6 +176,9 @@ class Offload:
                                             initargs=(os.getpid(),))
             for _ in range(workers):
                 self.pool.submit(_warm_up)
+            # the pools' manager threads (started by the first submit; their queue feeders are daemons), for
+            # join_stopped_workers: found without the executors' private attributes
+            self._managers = [t for t in threading.enumerate() if t not in before and not t.daemon]
         self.pending: list[Estimate | tuple[Estimate, Future]] = []
 
     def observations(self, recording: Recording, frames: list[FrameRecord]) -> Iterator[Observation]:
@@ -205,7 +229,9 @@ class Offload:
     def close(self, failed: bool) -> None:
         """Stop the workers. After a failure wait for them; after success do not: every row is out, and their
         exit (interpreter clean-up, ~0.3 s) overlaps whatever the caller does next (an interpreter joins them
-        at exit)."""
+        at exit; :func:`join_stopped_workers` joins them earlier, as the command line does)."""
         for pool in (self.observer, self.pool):
             if pool is not None:
                 pool.shutdown(wait=failed, cancel_futures=True)
+        _STOPPING.extend(t for t in self._managers if t.is_alive())
+        self._managers = []

@@ -163,3 +163,26 @@ def test_everything_falls_back_inline_when_the_workers_die(run: Path) -> None:
         assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))
     assert [r.frame for r in rows] == [e.frame for e in ests]
     assert [r.extra for r in rows] == [to_frame_estimate(e).extra for e in ests]
+
+
+def test_the_command_line_returns_after_the_worker_pools_it_stopped_have_shut_down(run: Path, tmp_path: Path) -> None:
+    """``Offload.close`` does not wait for the workers after a successful run, so their pools are still shutting
+    down when ``track_recording`` returns; ``main`` waits for them (``join_stopped_workers``), so the interpreter's
+    exit hook has no pool to race with (``OSError: [Errno 9] Bad file descriptor`` after a finished run)."""
+    import threading
+
+    from pinpoint_fg.cli import main
+    from pinpoint_fg.offload import _STOPPING
+
+    before = set(threading.enumerate())
+    track_recording(run, "svn", tmp_path / "api", particles=12, max_frames=3, verdict_workers=1, progress=False)
+    left = [t for t in _STOPPING if t not in before]
+    assert left, "the library call returned while its pools were still shutting down (nothing for main to wait for)"
+    for t in left:
+        t.join(30)
+    _STOPPING.clear()
+    code = main(["track", str(run), "--method", "svn", "--particles", "12",
+                 "--out", str(tmp_path / "cli")])
+    assert code == 0
+    assert not _STOPPING
+    assert [t for t in threading.enumerate() if t not in before and not t.daemon] == []

@@ -265,6 +265,15 @@ class FrameLikelihood:
             return loss, np.zeros((N, 0)), (np.zeros((N, 0, 6)) if jacobian else None)
         return loss, np.concatenate(es, axis=1), (np.concatenate(Js, axis=1) if jacobian else None)
 
+    def term_losses(self, cam_T_needle: np.ndarray) -> dict[str, np.ndarray]:
+        """Each term's robust loss ``rho_b(|e_b|)`` ``(N,)``, by term name (:attr:`term_names` order).
+
+        The parts of :meth:`irls`'s loss: summed in this order from zero they give it exactly. For
+        diagnosis: which measurement makes one pose cheaper than another (``scripts/frame_terms.py``).
+        """
+        T = res.as_pose_batch(cam_T_needle)
+        return {name: self._robust(name, e, None)[0] for name, e, _ in self._blocks(T, False)}
+
     def loss_at_rms(self, rms_sigma: float) -> float:
         """``nll`` of residuals whose blocks are all ``rms_sigma`` standard deviations per dimension off.
 

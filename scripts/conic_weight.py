@@ -106,10 +106,7 @@ def terms(run: Path, result: Path, frames: range) -> None:
         frame = rec.frames[k]
         lik = FrameLikelihood(observe_frame(rec, frame), model)
         T = np.stack([frame.cam_T_needle_gt, out.cam_T_needle[k]])
-        cells = []
-        for name, data in lik._terms:
-            loss = lik._robust(name, *lik._whiten(name, *lik._raw(name, data, T)))[0]
-            cells.append(f"{name} {loss[0]:6.1f} / {loss[1]:6.1f}")
+        cells = [f"{name} {loss[0]:6.1f} / {loss[1]:6.1f}" for name, loss in lik.term_losses(T).items()]
         print(f"frame {k:3d} (truth / MAP, nats): " + " | ".join(cells))
 
 

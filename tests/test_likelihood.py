@@ -58,3 +58,28 @@ def test_switches_from_disabled_round_trip() -> None:
     for names in [(), ("dense",), ("sparse",), ("tip",), ("grasp-position", "grasp-perpendicular", "motion")]:
         assert Switches.from_disabled(names).disabled() == tuple(names)
     assert not Switches.from_disabled(("sparse",)).tip and not Switches.from_disabled(("sparse",)).tail
+
+
+def test_term_losses_are_the_parts_of_the_robust_loss_and_each_matches_its_gtsam_factor() -> None:
+    """Summed in order from zero, the terms give ``irls``'s loss bit for bit; each equals its own GTSAM factor's
+    error (the default robust losses on, so the parts are robust ones)."""
+    rng = np.random.default_rng(1)
+    T = se3_exp(np.r_[-0.4, 0.3, 0.2, -0.003, 0.002, 0.05])
+    lik = FrameLikelihood(_obs(T, rng), MeasurementModel(CAM, NEEDLE, NoiseConfig(), Switches()))
+    poses = T @ se3_exp(rng.normal(size=(8, 6)) * np.r_[[0.2] * 3, [2e-3] * 3])
+    parts = lik.term_losses(poses)
+    assert tuple(parts) == lik.term_names
+    total = np.zeros(8)
+    for v in parts.values():
+        assert v.shape == (8,)
+        total += v
+    np.testing.assert_array_equal(total, lik.irls(poses, jacobian=False)[0])
+    fs = lik.gtsam_factors(0)  # tip, tail, one robust factor per conic pixel, grasp position, perpendicularity
+    assert len(fs) == 4 + 30
+    groups = {"tip": fs[:1], "tail": fs[1:2], "conic": fs[2:-2], "grasp_position": fs[-2:-1],
+              "grasp_perpendicular": fs[-1:]}
+    for i in range(8):
+        v = gtsam.Values()
+        v.insert(0, matrix_to_pose3(poses[i]))
+        for name, group in groups.items():
+            np.testing.assert_allclose(sum(f.error(v) for f in group), parts[name][i], rtol=1e-10, err_msg=name)

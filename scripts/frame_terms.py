@@ -1,4 +1,4 @@
-"""Which measurement makes SVN prefer its pose over single-mode MAP's? Per-term costs at both, and at the truth (issue 9).
+"""Which measurement makes SVN prefer its pose to single-mode MAP's? Per-term costs at both and at the truth (issue 9).
 
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/frame_terms.py RUN [--frames 12]
 [--every 1]``, e.g. ``/tmp/runs/drive-08`` (``pinpoint-fg simulate --scenario drive --frames 150 --seed 8``).

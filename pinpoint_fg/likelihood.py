@@ -274,6 +274,13 @@ class FrameLikelihood:
         T = res.as_pose_batch(cam_T_needle)
         return {name: self._robust(name, e, None)[0] for name, e, _ in self._blocks(T, False)}
 
+    def residuals(self, cam_T_needle: np.ndarray) -> dict[str, np.ndarray]:
+        """Each term's residual less its noise mean, unwhitened, ``(N, d)`` by term name (:attr:`term_names` order):
+        ``r - mean`` in the term's units (``noise.RESIDUAL_UNITS``), what :meth:`whitened` multiplies by ``W``."""
+        T = res.as_pose_batch(cam_T_needle)
+        return {name: self._raw(name, data, T, False)[0] - self._noise[name].mean
+                for name, data in self._terms}
+
     def loss_at_rms(self, rms_sigma: float) -> float:
         """``nll`` of residuals whose blocks are all ``rms_sigma`` standard deviations per dimension off.
 

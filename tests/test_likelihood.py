@@ -83,3 +83,29 @@ def test_term_losses_are_the_parts_of_the_robust_loss_and_each_matches_its_gtsam
         v.insert(0, matrix_to_pose3(poses[i]))
         for name, group in groups.items():
             np.testing.assert_allclose(sum(f.error(v) for f in group), parts[name][i], rtol=1e-10, err_msg=name)
+
+
+def test_residuals_are_what_whitened_multiplies_by_each_terms_square_root_information() -> None:
+    """``residuals`` (r - mean, unwhitened, (N, d) per term) times each term's ``W`` is ``whitened``, to round-off;
+    with biases, a correlated covariance and a scalar conic noise."""
+    rng = np.random.default_rng(2)
+    cov3 = np.array([[2.0, 0.3, 0.1], [0.3, 1.5, 0.0], [0.1, 0.0, 4.0]]) * 1e-7
+    noise = NoiseConfig({
+        "tip": ResidualNoise(np.r_[0.2, -0.1], np.array([[1.0, 0.2], [0.2, 1.1]])),
+        "conic": ResidualNoise(np.r_[0.15], np.array([[1.5]])),
+        "grasp_position": ResidualNoise(np.r_[1e-4, 0.0, -2e-4], cov3),
+        "grasp_perpendicular": ResidualNoise(np.r_[0.02], np.array([[0.02]])),
+    })
+    T = se3_exp(np.r_[0.3, -0.2, 0.1, 0.002, -0.001, 0.045])
+    lik = FrameLikelihood(_obs(T, rng), MeasurementModel(CAM, NEEDLE, noise, Switches()))
+    poses = T @ se3_exp(rng.normal(size=(6, 6)) * np.r_[[0.05] * 3, [5e-4] * 3])
+    r = lik.residuals(poses)
+    assert tuple(r) == lik.term_names
+    assert {k: v.shape for k, v in r.items()} == {"tip": (6, 2), "tail": (6, 2), "conic": (6, 30),
+                                                   "grasp_position": (6, 3), "grasp_perpendicular": (6, 1)}
+    parts = []
+    for name, v in r.items():
+        W = noise[name].sqrt_information
+        parts.append(v * W[0, 0] if name == "conic" else v @ W.T)
+    np.testing.assert_allclose(np.concatenate(parts, axis=1), lik.whitened(poses, jacobian=False)[0],
+                               rtol=1e-12, atol=1e-12)

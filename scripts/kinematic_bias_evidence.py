@@ -1,4 +1,4 @@
-"""The kinematic terms' evidence for SVN's, MAP's and the true trajectory: white noise vs a slowly varying bias (issue 9).
+"""The kinematic terms' evidence for SVN's, MAP's and the true trajectory: white noise vs a slow bias (issue 9).
 
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/kinematic_bias_evidence.py RUN
 [--frames 30] [--tau-s 5] [--white-share 0.01]``, e.g. ``/tmp/runs/drive-09`` (``pinpoint-fg simulate --scenario

@@ -13,7 +13,7 @@ log-likelihood in nats (Gaussian: the robust losses are left out of both):
 * **bias**, the simulator's model of kinematic error (``pinpoint_fg.sim.kinematics.ou_white_process``): ``r_k = b_k
   + w_k``, ``b`` an Ornstein-Uhlenbeck process with time constant ``--tau-s`` and variance ``(1 - f) C``, ``w``
   white with variance ``f C`` (``f = --white-share``), scored by its Kalman filter's prediction errors (the exact
-  sequence likelihood).
+  sequence likelihood; :func:`pinpoint_fg.kinematic_bias.sequence_nll`).
 
 Where one trajectory leads under *white* and trails under *bias*, the tracker's evidence for it came from
 counting one slowly varying kinematic error as fresh evidence on every frame. The trajectories are the trackers'
@@ -23,41 +23,19 @@ own (fitted under the white model), so this scores, not re-fits: a tracker with 
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
 from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.kinematic_bias import BiasModel, sequence_nll
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.track import make_tracker, suggested_disable, tracker_config
 
 TERMS = ("grasp_position", "grasp_perpendicular")
 WHO = ("svn", "map", "truth")
-
-
-def white_nll(r: np.ndarray, cov: np.ndarray) -> float:
-    """``sum_k 1/2 r_k^T C^-1 r_k + 1/2 log det(2 pi C)`` for ``r (K, d)``."""
-    quad = np.einsum("ki,ij,kj->", r, np.linalg.inv(cov), r)
-    return 0.5 * float(quad) + 0.5 * r.shape[0] * float(np.linalg.slogdet(2.0 * math.pi * cov)[1])
-
-
-def bias_nll(r: np.ndarray, cov: np.ndarray, dt_s: float, tau_s: float, white_share: float) -> float:
-    """The sequence NLL of ``r (K, d)`` under OU bias + white noise, from the Kalman filter's prediction errors."""
-    a = math.exp(-dt_s / tau_s)
-    cov_b, cov_w = (1.0 - white_share) * cov, white_share * cov
-    b, P = np.zeros(cov.shape[0]), cov_b.copy()  # the bias starts from its stationary law
-    total = 0.0
-    for x in r:
-        S = P + cov_w
-        nu = x - b
-        total += 0.5 * float(nu @ np.linalg.solve(S, nu)) + 0.5 * float(np.linalg.slogdet(2.0 * math.pi * S)[1])
-        gain = np.linalg.solve(S, P).T  # P S^-1 (both symmetric)
-        b, P = b + gain @ nu, P - gain @ P
-        b, P = a * b, a * a * P + (1.0 - a * a) * cov_b
-    return total
 
 
 def main() -> None:
@@ -92,6 +70,7 @@ def main() -> None:
     if len(times) < 2:
         raise SystemExit("fewer than two frames with ground truth and kinematics")
     dt_s = float(np.median(np.diff(times)))
+    model_bias = BiasModel(args.tau_s, args.white_share)
     print(f"{args.run.name}: {len(times)} frames, dt {dt_s * 1e3:.1f} ms; mean rotation error SVN "
           f"{np.mean(rot['svn']):.1f} deg, MAP {np.mean(rot['map']):.1f} deg; bias tau {args.tau_s} s, white share "
           f"{args.white_share}")
@@ -100,10 +79,9 @@ def main() -> None:
         for who in WHO:
             if not seq[who, term]:
                 continue
-            r = np.asarray(seq[who, term])
-            cov = model.noise[term].cov
-            print(f"{term:22s}{who:>11s}{white_nll(r, cov):12.1f}"
-                  f"{bias_nll(r, cov, dt_s, args.tau_s, args.white_share):12.1f}")
+            r, cov = np.asarray(seq[who, term]), model.noise[term].cov
+            white, bias = (float(sequence_nll(r, times, cov, m)[0]) for m in (None, model_bias))
+            print(f"{term:22s}{who:>11s}{white:12.1f}{bias:12.1f}")
 
 
 if __name__ == "__main__":

@@ -356,3 +356,39 @@ def test_track_recording_names_more_bad_arguments_before_any_work(kwargs: dict, 
     with pytest.raises(ValueError, match=says):
         track_recording(run, "map", out, progress=False, **kwargs)
     assert not out.exists()
+
+
+# --- sixth audit --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("bad", ["", None])
+@pytest.mark.parametrize("call", ["simulate", "import_bag", "import_bop", "export_bag", "run_batch"])
+def test_writers_refuse_an_out_that_is_not_a_path(call: str, bad: object, run: Path, tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """``out=""`` (an unset variable in a notebook) was pathlib's ``Path("")``, the current directory: ``simulate``
+    wrote its run into it (replacing a frames.csv or recording.json there), ``import_bag`` / ``import_bop`` too when
+    it was empty; ``out=None`` was pathlib's TypeError, naming no argument. Now an InputError naming ``out``."""
+    from pinpoint_fg.experiments.batch import run_batch
+    from pinpoint_fg.io.bag import export_bag, import_bag
+    from pinpoint_fg.io.bop import BopImportConfig, import_bop
+    from pinpoint_fg.sim.scenarios import simulate
+    from tests.bop_scene import write_bop_scene
+
+    if call == "import_bag":
+        bag = export_bag(run, tmp_path / "b.bag", fmt="ros1")
+    if call == "import_bop":
+        write_bop_scene(tmp_path / "bop", n_images=2, without_needle=())
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    calls = {
+        "simulate": lambda: simulate("normal", 2, out=bad),
+        "import_bag": lambda: import_bag(bag, bad, run / "recording.json"),
+        "import_bop": lambda: import_bop(tmp_path / "bop" / "000001", tmp_path / "bop" / "models" / "obj_000007.ply",
+                                         bad, BopImportConfig(obj_id=7)),
+        "export_bag": lambda: export_bag(run, bad, fmt="ros2"),
+        "run_batch": lambda: run_batch([run], "map", bad, workers=1),
+    }
+    name = "out_dir" if call == "run_batch" else "out"
+    with pytest.raises(InputError, match=f"^{name} must be a path"):
+        calls[call]()
+    assert not any(cwd.iterdir())

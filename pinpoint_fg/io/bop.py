@@ -58,7 +58,7 @@ import numpy as np
 
 from factors.geometry import PinholeCamera
 from factors.lie import homogeneous
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
 from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir
 from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
@@ -341,7 +341,9 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     into place at the end (:func:`pinpoint_fg.io.outdir.staged_output_dir`): a file that fails half-way (a corrupt
     mask PNG) leaves no partial run behind (it was a valid run of the frames before it).
     """
-    scene, model_path, out = Path(scene_dir), Path(model_path), Path(out)
+    # "" was the current directory (an unset variable): the run was written into it
+    scene, model_path = path_argument("scene_dir", scene_dir), path_argument("model_path", model_path)
+    out = path_argument("out", out)
     cfg = config
     _check_config(cfg)
     if not scene.is_dir():

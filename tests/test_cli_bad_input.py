@@ -1309,3 +1309,31 @@ def test_evaluate_refuses_a_recording_of_the_same_name_and_other_content(run: Pa
     shutil.copytree(run, copy)  # the same recording elsewhere (moved, copied) is fine, with or without the key
     for res in (map_result, legacy):
         assert main(["evaluate", str(res), "--recording", str(copy), "--out", str(tmp_path / f"ok-{res.name}")]) == 0
+
+
+# --- sixth audit --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("board", "says"), [
+    ({"square_m": 1e300}, "square_m"),   # was ValueError "points_px contains NaN or infinite values" (a traceback)
+    ({"squares_x": 5.0}, None),          # a whole float: was OpenCV's "Can't parse 'patternSize'" traceback
+    ({"squares_x": 2**31 + 1}, "squares_x"),  # the same traceback: OpenCV's pattern size is a C int
+    ({"square_m": 1.0}, "10 m"),         # was "error: column 'gt_x_m': ...", naming no file
+])
+def test_groundtruth_board_sizes_are_located_or_work(board: dict, says: str | None, board_run: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(board_run, run)
+    before = (run / "frames.csv").read_bytes()
+    b2n = write_board_to_needle(tmp_path / "b2n.json")
+    doc = json.loads(b2n.read_text())
+    doc["board"].update(board)
+    b2n.write_text(json.dumps(doc))
+    capsys.readouterr()
+    code = main(["groundtruth", str(run), "--board-to-needle", str(b2n)])
+    if says is None:  # 5.0 squares are 5 squares
+        assert code == 0 and "board detected in 3" in capsys.readouterr().out
+        return
+    assert code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(b2n) in line and "'board" in line and says in line
+    assert (run / "frames.csv").read_bytes() == before

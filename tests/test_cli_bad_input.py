@@ -1337,3 +1337,23 @@ def test_groundtruth_board_sizes_are_located_or_work(board: dict, says: str | No
     line = _one_error_line(capsys.readouterr().err)
     assert str(b2n) in line and "'board" in line and says in line
     assert (run / "frames.csv").read_bytes() == before
+
+
+def test_import_bop_names_scene_gt_for_a_needle_beyond_the_format(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """A scene_gt.json entry 20 m from the camera (cam_t_m2c 2e4 mm) was refused naming the run's frames.csv, a file
+    that does not exist (the run is never written); now scene_gt.json and the entry's cam_t_m2c are named."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=3)
+    path = Path(info["scene"]) / "scene_gt.json"
+    doc = json.loads(path.read_text())
+    idx = next(i for i, e in enumerate(doc["1"]) if e["obj_id"] == NEEDLE_OBJ_ID)
+    doc["1"][idx]["cam_t_m2c"][2] = 2e4
+    path.write_text(json.dumps(doc))
+    out = tmp_path / "run"
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "10 m" in line
+    assert not out.exists()

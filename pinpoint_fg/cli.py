@@ -75,7 +75,11 @@ def _int_at_least(low: int, high: int | None = None):
     return parse
 
 
-_count = _int_at_least(1)
+#: Most frames (or window length) a count accepts: more than any run holds (the format's time stamps end at 1e10 s,
+#: 3e11 frames at 30 Hz). Beyond int64 was a traceback (``simulate --frames 1e23``: NumPy's "Maximum allowed size
+#: exceeded"; ``track --window 1e23``: track_recording's ValueError; ``ablate --frames 1e23``: a worker's).
+MAX_FRAMES = 10**12
+_count = _int_at_least(1, MAX_FRAMES)
 
 
 def _particles(text: str) -> int:

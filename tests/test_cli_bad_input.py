@@ -1357,3 +1357,44 @@ def test_import_bop_names_scene_gt_for_a_needle_beyond_the_format(tmp_path: Path
     line = _one_error_line(capsys.readouterr().err)
     assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "10 m" in line
     assert not out.exists()
+
+
+HUGE = "99999999999999999999999"  # beyond int64
+HUGE_COUNTS = [  # each was a traceback (exit 1)
+    (["simulate", "--frames", HUGE], "--frames"),          # NumPy's "Maximum allowed size exceeded"
+    (["track", "RUN", "--window", HUGE], "--window"),      # track_recording's "window must be a whole number >= 1"
+    (["batch", "RUN", "--window", HUGE], "--window"),
+    (["ablate", "RUN", "--frames", HUGE], "--frames"),     # "max_frames must be a whole number", from a worker
+    (["demo", "--frames", HUGE], "--frames"),
+    (["benchmark", "--grid-frames", HUGE], "--grid-frames"),
+]
+
+
+@pytest.mark.parametrize(("argv", "flag"), HUGE_COUNTS, ids=[" ".join(a[:3]) for a, _ in HUGE_COUNTS])
+def test_a_count_beyond_any_run_is_a_usage_error(argv: list[str], flag: str, tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exc:
+        main([*(str(tmp_path / a) if a == "RUN" else a for a in argv), "--out", str(out)])
+    assert exc.value.code == 2
+    assert flag in _one_error_line(capsys.readouterr().err)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("method", ["map", "mht"])
+def test_a_window_longer_than_the_run_tracks_as_the_whole_run(method: str, run: Path, tmp_path: Path) -> None:
+    """``track --method map --window 1000000000`` on an 8-frame run never finished (the smoother walked every key of
+    the window, most before the run's first, on every frame); now it tracks as a window of the whole run would."""
+    import subprocess
+    import sys
+
+    argv = ["track", str(run), "--method", method, "--particles", "2"]
+    whole = tmp_path / "whole"
+    assert main([*argv, "--window", "8", "--out", str(whole)]) == 0
+    long = tmp_path / "long"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-m", "pinpoint_fg.cli", *argv, "--window", "1000000000", "--out",
+                           str(long)], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr
+    for name in ("smoothed.csv", "trajectory.tum"):
+        assert (long / name).read_text() == (whole / name).read_text()

@@ -392,3 +392,18 @@ def test_writers_refuse_an_out_that_is_not_a_path(call: str, bad: object, run: P
     with pytest.raises(InputError, match=f"^{name} must be a path"):
         calls[call]()
     assert not any(cwd.iterdir())
+
+
+@pytest.mark.parametrize(("kwargs", "says"), [
+    ({"frames": 2.5}, "frames must be a whole number"),   # tracked the first 2 frames, silently
+    ({"frames": "3"}, "frames must be a whole number"),   # int("3"): a string taken as a count
+    ({"frames": True}, "frames must be a whole number"),  # tracked 1 frame
+    ({"out": None}, "^out must be a path"),               # pathlib's TypeError, naming no argument
+])
+def test_ablate_names_a_frame_count_or_out_that_is_not_one(kwargs: dict, says: str, run: Path,
+                                                           tmp_path: Path) -> None:
+    from pinpoint_fg.experiments.ablate import ablate
+
+    with pytest.raises(InputError, match=says):
+        ablate(**{"runs": [run], "out": tmp_path / "a", "jobs": 1, **kwargs})
+    assert not (tmp_path / "a").exists()

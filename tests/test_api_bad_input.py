@@ -407,3 +407,27 @@ def test_ablate_names_a_frame_count_or_out_that_is_not_one(kwargs: dict, says: s
     with pytest.raises(InputError, match=says):
         ablate(**{"runs": [run], "out": tmp_path / "a", "jobs": 1, **kwargs})
     assert not (tmp_path / "a").exists()
+
+
+@pytest.mark.parametrize(("call", "kwargs", "says"), [
+    ("demo", {"frames": 0}, "n_frames"),
+    ("demo", {"frames": 2.5}, "n_frames"),
+    ("demo", {"seed": -1}, "seed"),
+    ("benchmark", {"frames": 0}, "n_frames"),
+    ("benchmark", {"seed": -1}, "seed"),
+    ("benchmark", {"grid_frames": 0}, "n_frames"),
+    ("benchmark", {"unseen_seeds": (-1,)}, "seed"),
+])
+def test_demo_and_benchmark_refuse_bad_sizes_before_creating_out(call: str, kwargs: dict, says: str,
+                                                                 tmp_path: Path) -> None:
+    """Each was refused by the simulator only after ``out`` had been created: an empty ``out`` was left behind."""
+    from pinpoint_fg.experiments.benchmark import run_benchmark
+    from pinpoint_fg.experiments.demo import run_demo
+
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=says):
+        if call == "demo":
+            run_demo(out=out, **{"frames": 2, "jobs": 1, **kwargs})
+        else:
+            run_benchmark(out=out, **{"frames": 2, "jobs": 1, **kwargs})
+    assert not out.exists()

@@ -183,8 +183,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import check_output_dir
 
     # checked here, created by evaluate once its inputs are read: a refused input leaves no empty --out behind
-    check_output_dir(args.out, args.overwrite, "evaluation",
-                     inputs=[*args.results, *([args.recording] if args.recording else [])])
+    check_output_dir(args.out, args.overwrite, "evaluation",  # the reference too: its files were mixed with ours
+                     inputs=[*args.results, *(p for p in (args.recording, args.reference) if p is not None)])
     summary = evaluate(args.results, recording=args.recording, out=args.out, reference=args.reference,
                        spread_scale=args.spread_scale)
     print(summary)

@@ -1398,3 +1398,16 @@ def test_a_window_longer_than_the_run_tracks_as_the_whole_run(method: str, run: 
     assert done.returncode == 0, done.stderr
     for name in ("smoothed.csv", "trajectory.tum"):
         assert (long / name).read_text() == (whole / name).read_text()
+
+
+def test_out_that_is_the_reference_result_is_refused(map_result: Path, svn_result: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``evaluate RES --reference REF --out REF --overwrite`` wrote summary.csv, tables.md and the figures into the
+    reference result (exit 0), while the same --out for RES or --recording was refused."""
+    ref = tmp_path / "ref"
+    shutil.copytree(map_result, ref)
+    before = sorted(str(p.relative_to(ref)) for p in ref.rglob("*"))
+    assert main(["evaluate", str(svn_result), "--reference", str(ref), "--out", str(ref), "--overwrite"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(ref) in line and "also an input" in line
+    assert sorted(str(p.relative_to(ref)) for p in ref.rglob("*")) == before

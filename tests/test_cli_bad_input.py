@@ -1411,3 +1411,31 @@ def test_out_that_is_the_reference_result_is_refused(map_result: Path, svn_resul
     line = _one_error_line(capsys.readouterr().err)
     assert str(ref) in line and "also an input" in line
     assert sorted(str(p.relative_to(ref)) for p in ref.rglob("*")) == before
+
+
+def test_a_recording_name_with_a_pipe_or_newline_keeps_the_tables_in_shape(run: Path, tmp_path: Path) -> None:
+    """A recording named ``a|b`` (any JSON string is a valid name) shifted every value of its tables.md rows one
+    column right, under the wrong header, exit 0; a newline in the name cut the row in two."""
+    import re
+
+    named = tmp_path / "named"
+    shutil.copytree(run, named)
+    doc = json.loads((named / "recording.json").read_text())
+    doc["name"] = "a|b\nc"
+    (named / "recording.json").write_text(json.dumps(doc))
+    assert main(["track", str(named), "--method", "map", "--out", str(tmp_path / "res")]) == 0
+    assert main(["evaluate", str(tmp_path / "res"), "--out", str(tmp_path / "ev")]) == 0
+    lines = (tmp_path / "ev" / "tables.md").read_text().splitlines()
+    cells = lambda line: len(re.split(r"(?<!\\)\|", line))  # noqa: E731 (the cells of a row, escaped pipes kept)
+    n = 0
+    for i, line in enumerate(lines):
+        if line.startswith("|---"):  # a table's separator: its header above, its rows below
+            width = cells(lines[i - 1])
+            for row in lines[i + 1:]:
+                if not row.startswith("|"):
+                    break
+                assert cells(row) == width, row
+                n += 1
+        else:
+            assert not line.startswith("c |") and not line.startswith("c\\|"), line  # a row cut by the newline
+    assert n > 0

@@ -36,6 +36,9 @@ def _disable_list(text: str) -> tuple[str, ...]:
 def _robust_spec(text: str) -> dict:
     from pinpoint_fg.noise import parse_robust_spec
 
+    if not text.strip():  # was read as 'none': an unset shell variable switched the default robust losses off, exit 0
+        raise argparse.ArgumentTypeError("an empty spec (an unset shell variable?); write 'none' to switch every "
+                                         "robust loss off")
     try:
         return parse_robust_spec(text)
     except ValueError as exc:

@@ -1439,3 +1439,17 @@ def test_a_recording_name_with_a_pipe_or_newline_keeps_the_tables_in_shape(run: 
         else:
             assert not line.startswith("c |") and not line.startswith("c\\|"), line  # a row cut by the newline
     assert n > 0
+
+
+@pytest.mark.parametrize("spec", ["", "  "])
+def test_an_empty_robust_spec_is_a_usage_error(spec: str, run: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """``--robust "$ROBUST"`` with the variable unset switched every robust loss off (as ``none``), exit 0: the
+    default conic=cauchy:3 and grasp-perpendicular=huber:1.345 were silently dropped."""
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exc:
+        main(["track", str(run), "--method", "map", "--robust", spec, "--out", str(out)])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--robust" in line and "empty" in line and "'none'" in line
+    assert not out.exists()

@@ -60,6 +60,10 @@ from factors.geometry import PinholeCamera
 BLACK_LEVEL = 25.0
 #: Grey level of the white squares and the margin (0..255).
 WHITE_LEVEL = 235.0
+#: Largest accepted square side and margin of the board, metres.
+MAX_BOARD_M = 1.0
+#: Most squares along a side of the board (OpenCV's pattern size is a C int; a 4 px square needs 4000 px for 1000).
+MAX_BOARD_SQUARES = 1000
 
 
 @dataclass(frozen=True)
@@ -80,15 +84,19 @@ class BoardSpec:
             v = getattr(self, name)
             if int(v) != v or v < 4:
                 raise ValueError(f"BoardSpec.{name} must be a whole number >= 4 (OpenCV needs > 2 inner corners)")
+            if v > MAX_BOARD_SQUARES:  # 2**31 + 1 was OpenCV's "Can't parse 'patternSize'" traceback
+                raise ValueError(f"BoardSpec.{name} must be at most {MAX_BOARD_SQUARES}, got {v!r}")
+            object.__setattr__(self, name, int(v))  # a JSON 5.0 was OpenCV's "Can't parse 'patternSize'" traceback
         if (self.squares_x + self.squares_y) % 2 != 1:
             raise ValueError(
                 "BoardSpec needs one odd and one even side (squares_x + squares_y odd) so that its colours "
                 f"fix the 180-degree orientation; got {self.squares_x} x {self.squares_y}"
             )
-        if not (math.isfinite(self.square_m) and self.square_m > 0):
-            raise ValueError(f"BoardSpec.square_m must be > 0, got {self.square_m!r}")
-        if not (math.isfinite(self.margin_m) and self.margin_m >= 0):
-            raise ValueError(f"BoardSpec.margin_m must be >= 0, got {self.margin_m!r}")
+        # a printed board of metre-sized squares is a unit mistake; 1e300 m overflowed the detector's homography
+        if not (math.isfinite(self.square_m) and 0 < self.square_m <= MAX_BOARD_M):
+            raise ValueError(f"BoardSpec.square_m must be > 0 and <= {MAX_BOARD_M:g} m, got {self.square_m!r}")
+        if not (math.isfinite(self.margin_m) and 0 <= self.margin_m <= MAX_BOARD_M):
+            raise ValueError(f"BoardSpec.margin_m must be >= 0 and <= {MAX_BOARD_M:g} m, got {self.margin_m!r}")
 
     @property
     def pattern_size(self) -> tuple[int, int]:

@@ -36,6 +36,9 @@ def _disable_list(text: str) -> tuple[str, ...]:
 def _robust_spec(text: str) -> dict:
     from pinpoint_fg.noise import parse_robust_spec
 
+    if not text.strip():  # was read as 'none': an unset shell variable switched the default robust losses off, exit 0
+        raise argparse.ArgumentTypeError("an empty spec (an unset shell variable?); write 'none' to switch every "
+                                         "robust loss off")
     try:
         return parse_robust_spec(text)
     except ValueError as exc:
@@ -75,7 +78,11 @@ def _int_at_least(low: int, high: int | None = None):
     return parse
 
 
-_count = _int_at_least(1)
+#: Most frames (or window length) a count accepts: more than any run holds (the format's time stamps end at 1e10 s,
+#: 3e11 frames at 30 Hz). Beyond int64 was a traceback (``simulate --frames 1e23``: NumPy's "Maximum allowed size
+#: exceeded"; ``track --window 1e23``: track_recording's ValueError; ``ablate --frames 1e23``: a worker's).
+MAX_FRAMES = 10**12
+_count = _int_at_least(1, MAX_FRAMES)
 
 
 def _particles(text: str) -> int:
@@ -179,8 +186,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import check_output_dir
 
     # checked here, created by evaluate once its inputs are read: a refused input leaves no empty --out behind
-    check_output_dir(args.out, args.overwrite, "evaluation",
-                     inputs=[*args.results, *([args.recording] if args.recording else [])])
+    check_output_dir(args.out, args.overwrite, "evaluation",  # the reference too: its files were mixed with ours
+                     inputs=[*args.results, *(p for p in (args.recording, args.reference) if p is not None)])
     summary = evaluate(args.results, recording=args.recording, out=args.out, reference=args.reference,
                        spread_scale=args.spread_scale)
     print(summary)

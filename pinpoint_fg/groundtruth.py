@@ -266,6 +266,12 @@ def groundtruth_run(run: str | Path, board_to_needle: str | Path) -> GroundTruth
         if behind is not None:  # the run's reader would refuse it: name the mount, leave frames.csv as it is
             raise InputError(f"frame {rec.frame}: {behind}; {Path(run) / 'frames.csv'} is left unchanged",
                              file=Path(board_to_needle), column="board_T_needle")
+        far = float(np.max(np.abs(cam_T_needle[:3, 3])))
+        if far > MAX_ABS_METRES:  # the writer refused it naming no file ("error: column 'gt_x_m': ...")
+            raise InputError(f"frame {rec.frame}: the board puts the needle {far:.6g} m from the camera, beyond the "
+                             f"format's {MAX_ABS_METRES:g} m (is the board size right?); "
+                             f"{Path(run) / 'frames.csv'} is left unchanged", file=Path(board_to_needle),
+                             column="board")
         gt_by_frame[int(rec.frame)] = cam_T_needle
         old = rec.cam_T_needle_gt
         if old is not None:

@@ -356,3 +356,78 @@ def test_track_recording_names_more_bad_arguments_before_any_work(kwargs: dict, 
     with pytest.raises(ValueError, match=says):
         track_recording(run, "map", out, progress=False, **kwargs)
     assert not out.exists()
+
+
+# --- sixth audit --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("bad", ["", None])
+@pytest.mark.parametrize("call", ["simulate", "import_bag", "import_bop", "export_bag", "run_batch"])
+def test_writers_refuse_an_out_that_is_not_a_path(call: str, bad: object, run: Path, tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """``out=""`` (an unset variable in a notebook) was pathlib's ``Path("")``, the current directory: ``simulate``
+    wrote its run into it (replacing a frames.csv or recording.json there), ``import_bag`` / ``import_bop`` too when
+    it was empty; ``out=None`` was pathlib's TypeError, naming no argument. Now an InputError naming ``out``."""
+    from pinpoint_fg.experiments.batch import run_batch
+    from pinpoint_fg.io.bag import export_bag, import_bag
+    from pinpoint_fg.io.bop import BopImportConfig, import_bop
+    from pinpoint_fg.sim.scenarios import simulate
+    from tests.bop_scene import write_bop_scene
+
+    if call == "import_bag":
+        bag = export_bag(run, tmp_path / "b.bag", fmt="ros1")
+    if call == "import_bop":
+        write_bop_scene(tmp_path / "bop", n_images=2, without_needle=())
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    calls = {
+        "simulate": lambda: simulate("normal", 2, out=bad),
+        "import_bag": lambda: import_bag(bag, bad, run / "recording.json"),
+        "import_bop": lambda: import_bop(tmp_path / "bop" / "000001", tmp_path / "bop" / "models" / "obj_000007.ply",
+                                         bad, BopImportConfig(obj_id=7)),
+        "export_bag": lambda: export_bag(run, bad, fmt="ros2"),
+        "run_batch": lambda: run_batch([run], "map", bad, workers=1),
+    }
+    name = "out_dir" if call == "run_batch" else "out"
+    with pytest.raises(InputError, match=f"^{name} must be a path"):
+        calls[call]()
+    assert not any(cwd.iterdir())
+
+
+@pytest.mark.parametrize(("kwargs", "says"), [
+    ({"frames": 2.5}, "frames must be a whole number"),   # tracked the first 2 frames, silently
+    ({"frames": "3"}, "frames must be a whole number"),   # int("3"): a string taken as a count
+    ({"frames": True}, "frames must be a whole number"),  # tracked 1 frame
+    ({"out": None}, "^out must be a path"),               # pathlib's TypeError, naming no argument
+])
+def test_ablate_names_a_frame_count_or_out_that_is_not_one(kwargs: dict, says: str, run: Path,
+                                                           tmp_path: Path) -> None:
+    from pinpoint_fg.experiments.ablate import ablate
+
+    with pytest.raises(InputError, match=says):
+        ablate(**{"runs": [run], "out": tmp_path / "a", "jobs": 1, **kwargs})
+    assert not (tmp_path / "a").exists()
+
+
+@pytest.mark.parametrize(("call", "kwargs", "says"), [
+    ("demo", {"frames": 0}, "n_frames"),
+    ("demo", {"frames": 2.5}, "n_frames"),
+    ("demo", {"seed": -1}, "seed"),
+    ("benchmark", {"frames": 0}, "n_frames"),
+    ("benchmark", {"seed": -1}, "seed"),
+    ("benchmark", {"grid_frames": 0}, "n_frames"),
+    ("benchmark", {"unseen_seeds": (-1,)}, "seed"),
+])
+def test_demo_and_benchmark_refuse_bad_sizes_before_creating_out(call: str, kwargs: dict, says: str,
+                                                                 tmp_path: Path) -> None:
+    """Each was refused by the simulator only after ``out`` had been created: an empty ``out`` was left behind."""
+    from pinpoint_fg.experiments.benchmark import run_benchmark
+    from pinpoint_fg.experiments.demo import run_demo
+
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=says):
+        if call == "demo":
+            run_demo(out=out, **{"frames": 2, "jobs": 1, **kwargs})
+        else:
+            run_benchmark(out=out, **{"frames": 2, "jobs": 1, **kwargs})
+    assert not out.exists()

@@ -1309,3 +1309,147 @@ def test_evaluate_refuses_a_recording_of_the_same_name_and_other_content(run: Pa
     shutil.copytree(run, copy)  # the same recording elsewhere (moved, copied) is fine, with or without the key
     for res in (map_result, legacy):
         assert main(["evaluate", str(res), "--recording", str(copy), "--out", str(tmp_path / f"ok-{res.name}")]) == 0
+
+
+# --- sixth audit --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("board", "says"), [
+    ({"square_m": 1e300}, "square_m"),   # was ValueError "points_px contains NaN or infinite values" (a traceback)
+    ({"squares_x": 5.0}, None),          # a whole float: was OpenCV's "Can't parse 'patternSize'" traceback
+    ({"squares_x": 2**31 + 1}, "squares_x"),  # the same traceback: OpenCV's pattern size is a C int
+    ({"square_m": 1.0}, "10 m"),         # was "error: column 'gt_x_m': ...", naming no file
+])
+def test_groundtruth_board_sizes_are_located_or_work(board: dict, says: str | None, board_run: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(board_run, run)
+    before = (run / "frames.csv").read_bytes()
+    b2n = write_board_to_needle(tmp_path / "b2n.json")
+    doc = json.loads(b2n.read_text())
+    doc["board"].update(board)
+    b2n.write_text(json.dumps(doc))
+    capsys.readouterr()
+    code = main(["groundtruth", str(run), "--board-to-needle", str(b2n)])
+    if says is None:  # 5.0 squares are 5 squares
+        assert code == 0 and "board detected in 3" in capsys.readouterr().out
+        return
+    assert code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(b2n) in line and "'board" in line and says in line
+    assert (run / "frames.csv").read_bytes() == before
+
+
+def test_import_bop_names_scene_gt_for_a_needle_beyond_the_format(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """A scene_gt.json entry 20 m from the camera (cam_t_m2c 2e4 mm) was refused naming the run's frames.csv, a file
+    that does not exist (the run is never written); now scene_gt.json and the entry's cam_t_m2c are named."""
+    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
+
+    info = write_bop_scene(tmp_path / "dataset", n_images=3)
+    path = Path(info["scene"]) / "scene_gt.json"
+    doc = json.loads(path.read_text())
+    idx = next(i for i, e in enumerate(doc["1"]) if e["obj_id"] == NEEDLE_OBJ_ID)
+    doc["1"][idx]["cam_t_m2c"][2] = 2e4
+    path.write_text(json.dumps(doc))
+    out = tmp_path / "run"
+    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
+                 "--out", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "10 m" in line
+    assert not out.exists()
+
+
+HUGE = "99999999999999999999999"  # beyond int64
+HUGE_COUNTS = [  # each was a traceback (exit 1)
+    (["simulate", "--frames", HUGE], "--frames"),          # NumPy's "Maximum allowed size exceeded"
+    (["track", "RUN", "--window", HUGE], "--window"),      # track_recording's "window must be a whole number >= 1"
+    (["batch", "RUN", "--window", HUGE], "--window"),
+    (["ablate", "RUN", "--frames", HUGE], "--frames"),     # "max_frames must be a whole number", from a worker
+    (["demo", "--frames", HUGE], "--frames"),
+    (["benchmark", "--grid-frames", HUGE], "--grid-frames"),
+]
+
+
+@pytest.mark.parametrize(("argv", "flag"), HUGE_COUNTS, ids=[" ".join(a[:3]) for a, _ in HUGE_COUNTS])
+def test_a_count_beyond_any_run_is_a_usage_error(argv: list[str], flag: str, tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exc:
+        main([*(str(tmp_path / a) if a == "RUN" else a for a in argv), "--out", str(out)])
+    assert exc.value.code == 2
+    assert flag in _one_error_line(capsys.readouterr().err)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("method", ["map", "mht"])
+def test_a_window_longer_than_the_run_tracks_as_the_whole_run(method: str, run: Path, tmp_path: Path) -> None:
+    """``track --method map --window 1000000000`` on an 8-frame run never finished (the smoother walked every key of
+    the window, most before the run's first, on every frame); now it tracks as a window of the whole run would."""
+    import subprocess
+    import sys
+
+    argv = ["track", str(run), "--method", method, "--particles", "2"]
+    whole = tmp_path / "whole"
+    assert main([*argv, "--window", "8", "--out", str(whole)]) == 0
+    long = tmp_path / "long"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-m", "pinpoint_fg.cli", *argv, "--window", "1000000000", "--out",
+                           str(long)], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr
+    for name in ("smoothed.csv", "trajectory.tum"):
+        assert (long / name).read_text() == (whole / name).read_text()
+
+
+def test_out_that_is_the_reference_result_is_refused(map_result: Path, svn_result: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``evaluate RES --reference REF --out REF --overwrite`` wrote summary.csv, tables.md and the figures into the
+    reference result (exit 0), while the same --out for RES or --recording was refused."""
+    ref = tmp_path / "ref"
+    shutil.copytree(map_result, ref)
+    before = sorted(str(p.relative_to(ref)) for p in ref.rglob("*"))
+    assert main(["evaluate", str(svn_result), "--reference", str(ref), "--out", str(ref), "--overwrite"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(ref) in line and "also an input" in line
+    assert sorted(str(p.relative_to(ref)) for p in ref.rglob("*")) == before
+
+
+def test_a_recording_name_with_a_pipe_or_newline_keeps_the_tables_in_shape(run: Path, tmp_path: Path) -> None:
+    """A recording named ``a|b`` (any JSON string is a valid name) shifted every value of its tables.md rows one
+    column right, under the wrong header, exit 0; a newline in the name cut the row in two."""
+    import re
+
+    named = tmp_path / "named"
+    shutil.copytree(run, named)
+    doc = json.loads((named / "recording.json").read_text())
+    doc["name"] = "a|b\nc"
+    (named / "recording.json").write_text(json.dumps(doc))
+    assert main(["track", str(named), "--method", "map", "--out", str(tmp_path / "res")]) == 0
+    assert main(["evaluate", str(tmp_path / "res"), "--out", str(tmp_path / "ev")]) == 0
+    lines = (tmp_path / "ev" / "tables.md").read_text().splitlines()
+    cells = lambda line: len(re.split(r"(?<!\\)\|", line))  # noqa: E731 (the cells of a row, escaped pipes kept)
+    n = 0
+    for i, line in enumerate(lines):
+        if line.startswith("|---"):  # a table's separator: its header above, its rows below
+            width = cells(lines[i - 1])
+            for row in lines[i + 1:]:
+                if not row.startswith("|"):
+                    break
+                assert cells(row) == width, row
+                n += 1
+        else:
+            assert not line.startswith("c |") and not line.startswith("c\\|"), line  # a row cut by the newline
+    assert n > 0
+
+
+@pytest.mark.parametrize("spec", ["", "  "])
+def test_an_empty_robust_spec_is_a_usage_error(spec: str, run: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """``--robust "$ROBUST"`` with the variable unset switched every robust loss off (as ``none``), exit 0: the
+    default conic=cauchy:3 and grasp-perpendicular=huber:1.345 were silently dropped."""
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exc:
+        main(["track", str(run), "--method", "map", "--robust", spec, "--out", str(out)])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--robust" in line and "empty" in line and "'none'" in line
+    assert not out.exists()

@@ -424,9 +424,15 @@ def _pct(x: float) -> str:
     return "–" if x is None or not np.isfinite(x) else f"{100.0 * x:.0f}%"
 
 
+def _md_cell(text: str) -> str:
+    """``text`` as one Markdown table cell: ``|`` escaped, control characters shown as escapes (a recording named
+    ``a|b`` shifted its row's values under the wrong headers, a newline in a name cut the row in two)."""
+    return "".join(repr(c)[1:-1] if ord(c) < 32 or ord(c) == 127 else c for c in str(text)).replace("|", "\\|")
+
+
 def _md_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    lines += ["| " + " | ".join(_md_cell(c) for c in r) + " |" for r in rows]
     return "\n".join(lines)
 
 

@@ -25,9 +25,10 @@ from concurrent.futures import Future, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
-from pinpoint_fg.errors import InputError, path_list, refuse_repeated
+from pinpoint_fg.errors import InputError, path_argument, path_list, refuse_repeated
 from pinpoint_fg.eval.report import ABLATION_VARIANTS, evaluate_results
 from pinpoint_fg.experiments.jobs import interruptible_pool
 from pinpoint_fg.io.outdir import prepare_output_dir
@@ -86,9 +87,10 @@ def ablation_jobs(
     if not runs:
         raise InputError("ablate needs at least one recorded run")
     refuse_repeated(runs, "run")  # was tracked twice and weighed double in Table III
-    if frames is not None and int(frames) < 1:
-        raise InputError(f"--frames must be >= 1, got {frames}")
-    out = Path(out)
+    # int() truncated 2.5 to 2 frames and took "3" or True as counts, silently
+    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1):
+        raise InputError(f"--frames must be a whole number >= 1, got {frames!r}")
+    out = path_argument("out", out)  # None was pathlib's TypeError, naming no argument
     jobs: list[AblationJob] = []
     used: set[str] = set()
     for run in runs:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pinpoint_fg.errors import InputError, path_list, refuse_repeated
+from pinpoint_fg.errors import InputError, path_argument, path_list, refuse_repeated
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.noise import NoiseConfig
@@ -146,7 +146,7 @@ def run_batch(
     """
     from distributed import Client, LocalCluster, as_completed
 
-    out_dir = Path(out_dir).absolute()
+    out_dir = path_argument("out_dir", out_dir).absolute()  # "" was the current directory
     paths, options = _prepare(runs, method, out_dir, workers, track_options)
     out_dirs = {p: out_dir / name for p, name in zip(paths, result_dir_names(paths), strict=True)}
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -130,7 +130,12 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
     latency benchmark.
     """
     from pinpoint_fg.io.outdir import prepare_output_dir
+    from pinpoint_fg.sim.scenarios import _check_args
 
+    # before out exists (the simulator's refusal left an empty out; a bad grid size or unseen seed, the whole benchmark)
+    grid = frames if grid_frames is None else grid_frames
+    for n, s in ((frames, seed), (grid, seed), *((frames, k) for k in unseen_seeds)):
+        _check_args(BENCH_SCENARIOS[0], n, s)
     if seed in unseen_seeds or len(set(unseen_seeds)) != len(unseen_seeds):
         raise InputError(f"must be distinct and differ from the benchmark's seed {seed}, got {list(unseen_seeds)}",
                          column="--unseen-seeds")

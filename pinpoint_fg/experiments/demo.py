@@ -24,8 +24,10 @@ def run_demo(out: Path = Path("demo-output"), frames: int = 240, jobs: int = 2, 
     """
     from pinpoint_fg.eval.report import evaluate_results
     from pinpoint_fg.io.outdir import prepare_output_dir
+    from pinpoint_fg.sim.scenarios import _check_args
     from pinpoint_fg.track import suggested_disable
 
+    _check_args(DEMO_SCENARIOS[0], frames, seed)  # before out exists: the simulator's refusal left an empty out
     out = prepare_output_dir(out, overwrite, "demo output")
     t0 = time.perf_counter()
     print(f"[demo] simulating {', '.join(DEMO_SCENARIOS)} ({frames} frames each, seed {seed}) -> {out / 'runs'}")

@@ -85,7 +85,7 @@ from typing import Any
 import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz_quat_from_pose
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import (
@@ -443,7 +443,7 @@ def import_bag(
     ``needle`` is a :class:`NeedleModel` or the path of ``NEEDLE.json``. Everything is read and
     validated before the first file is written. Raises :class:`InputError` on any problem.
     """
-    bag, out = Path(bag), Path(out)
+    bag, out = path_argument("bag", bag), path_argument("out", out)  # "" was the current directory
     topics = topics or BagTopics()
     if not math.isfinite(stamp_tolerance_s) or not 0 <= stamp_tolerance_s <= 1e9:  # 1e308 overflowed the ns
         raise InputError(f"must be a finite number in [0, 1e9], got {stamp_tolerance_s}", column="--stamp-tolerance-s")
@@ -681,7 +681,7 @@ def export_bag(
     ``.bag`` file (``out`` must end in ``.bag``: readers tell the two formats apart by it). Topics
     set to None are not written. Masks are read through :meth:`Recording.load_mask`.
     """
-    run, out = Path(run), Path(out)
+    run, out = path_argument("run", run), path_argument("out", out)  # "" was the current directory
     topics = topics or BagTopics()
     if fmt not in ("ros1", "ros2"):
         raise InputError(f"unknown bag format {fmt!r}; choose ros1 or ros2", column="--format")

@@ -58,11 +58,11 @@ import numpy as np
 
 from factors.geometry import PinholeCamera
 from factors.lie import homogeneous
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.needle_mesh import NeedleMeshFit, fit_needle_mesh, read_ply_vertices
 from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir
 from pinpoint_fg.io.recording.png import PNG_SIGNATURE, check_png
-from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo, gt_depth_problem
+from pinpoint_fg.io.recording.schema import MAX_ABS_METRES, FrameRecord, RecordingInfo, gt_depth_problem
 from pinpoint_fg.io.recording.writer import RecordingWriter, check_recording_info
 
 SCENE_CAMERA = "scene_camera.json"
@@ -249,10 +249,16 @@ def _gt_entries(path: Path, obj_id: int, instance: int | None) -> dict[int, tupl
 
 
 def _check_gt_depths(gts: dict[int, tuple[int, np.ndarray]], model_T_needle: np.ndarray, path: Path) -> None:
-    """:class:`InputError` naming the ``cam_t_m2c`` of the first entry whose needle lies behind the camera, before
-    anything is written (:func:`~pinpoint_fg.io.recording.schema.gt_depth_problem`: the run's reader refuses it)."""
+    """:class:`InputError` naming the ``cam_t_m2c`` of the first entry whose needle lies behind the camera or beyond
+    the format's :data:`MAX_ABS_METRES`, before anything is written
+    (:func:`~pinpoint_fg.io.recording.schema.gt_depth_problem`: the run's reader refuses it; the writer named the
+    run's frames.csv, a file never written, for the distance)."""
     for im, (gt_idx, cam_T_model) in sorted(gts.items()):
-        problem = gt_depth_problem(cam_T_model @ model_T_needle)
+        cam_T_needle = cam_T_model @ model_T_needle
+        problem = gt_depth_problem(cam_T_needle)
+        far = float(np.max(np.abs(cam_T_needle[:3, 3])))
+        if problem is None and far > MAX_ABS_METRES:
+            problem = f"the needle lies {far:.6g} m from the camera, beyond the format's {MAX_ABS_METRES:g} m"
         if problem is not None:
             raise InputError(problem, file=path,
                              column=f"{im}[{gt_idx}].cam_t_m2c")
@@ -341,7 +347,9 @@ def import_bop(scene_dir: str | Path, model_path: str | Path, out: str | Path,
     into place at the end (:func:`pinpoint_fg.io.outdir.staged_output_dir`): a file that fails half-way (a corrupt
     mask PNG) leaves no partial run behind (it was a valid run of the frames before it).
     """
-    scene, model_path, out = Path(scene_dir), Path(model_path), Path(out)
+    # "" was the current directory (an unset variable): the run was written into it
+    scene, model_path = path_argument("scene_dir", scene_dir), path_argument("model_path", model_path)
+    out = path_argument("out", out)
     cfg = config
     _check_config(cfg)
     if not scene.is_dir():

@@ -807,10 +807,11 @@ def simulate(
     namesakes, others left alone): a failure half-way (out of memory, Ctrl-C) leaves neither an empty ``out`` nor
     a shorter run that a later command would read as this one.
     """
+    from pinpoint_fg.errors import path_argument
     from pinpoint_fg.io.outdir import staged_output_dir
     from pinpoint_fg.io.recording.writer import RecordingWriter
 
-    out = Path(out)
+    out = path_argument("out", out)  # "" was the current directory: the run replaced the files there
     run, pend = _prepare(scenario, n_frames, seed, config)
     background = run_background(run) if images else None
     with staged_output_dir(out, True, "simulated run") as stage, RecordingWriter(stage, run.info) as writer:

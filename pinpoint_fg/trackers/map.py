@@ -300,7 +300,8 @@ class MapSmoother:
         if self.window <= 1 or self.smoother is None or self.key < 0:
             return {}
         out = {}
-        for k in range(self.key - (self.window - 1) + 1, self.key + 1):
+        # keys start at 0: a window longer than the run (L = 1e9) walked a billion keys before it on every frame
+        for k in range(max(0, self.key - (self.window - 1) + 1), self.key + 1):
             s = self.smoothed_at(k)
             if s is not None:
                 out[k] = s

@@ -27,15 +27,20 @@ def _obs(T: np.ndarray, rng: np.random.Generator) -> Observation:
                        cam_T_grasper=G)
 
 
-def test_likelihood_equals_gtsam_factor_errors_with_biases() -> None:
-    rng = np.random.default_rng(0)
+def _biased_noise() -> NoiseConfig:
+    """Noise with biases, a correlated grasp-position covariance and a scalar conic noise."""
     cov3 = np.array([[2.0, 0.3, 0.1], [0.3, 1.5, 0.0], [0.1, 0.0, 4.0]]) * 1e-7
-    noise = NoiseConfig({
+    return NoiseConfig({
         "tip": ResidualNoise(np.r_[0.2, -0.1], np.array([[1.0, 0.2], [0.2, 1.1]])),
         "conic": ResidualNoise(np.r_[0.15], np.array([[1.5]])),
         "grasp_position": ResidualNoise(np.r_[1e-4, 0.0, -2e-4], cov3),
         "grasp_perpendicular": ResidualNoise(np.r_[0.02], np.array([[0.02]])),
     })
+
+
+def test_likelihood_equals_gtsam_factor_errors_with_biases() -> None:
+    rng = np.random.default_rng(0)
+    noise = _biased_noise()
     T = se3_exp(np.r_[0.3, -0.2, 0.1, 0.002, -0.001, 0.045])
     lik = FrameLikelihood(_obs(T, rng), MeasurementModel(CAM, NEEDLE, noise, Switches()))
     assert lik.term_names == ("tip", "tail", "conic", "grasp_position", "grasp_perpendicular")
@@ -89,13 +94,7 @@ def test_residuals_are_what_whitened_multiplies_by_each_terms_square_root_inform
     """``residuals`` (r - mean, unwhitened, (N, d) per term) times each term's ``W`` is ``whitened``, to round-off;
     with biases, a correlated covariance and a scalar conic noise."""
     rng = np.random.default_rng(2)
-    cov3 = np.array([[2.0, 0.3, 0.1], [0.3, 1.5, 0.0], [0.1, 0.0, 4.0]]) * 1e-7
-    noise = NoiseConfig({
-        "tip": ResidualNoise(np.r_[0.2, -0.1], np.array([[1.0, 0.2], [0.2, 1.1]])),
-        "conic": ResidualNoise(np.r_[0.15], np.array([[1.5]])),
-        "grasp_position": ResidualNoise(np.r_[1e-4, 0.0, -2e-4], cov3),
-        "grasp_perpendicular": ResidualNoise(np.r_[0.02], np.array([[0.02]])),
-    })
+    noise = _biased_noise()
     T = se3_exp(np.r_[0.3, -0.2, 0.1, 0.002, -0.001, 0.045])
     lik = FrameLikelihood(_obs(T, rng), MeasurementModel(CAM, NEEDLE, noise, Switches()))
     poses = T @ se3_exp(rng.normal(size=(6, 6)) * np.r_[[0.05] * 3, [5e-4] * 3])

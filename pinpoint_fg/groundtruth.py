@@ -44,7 +44,7 @@ import numpy as np
 from factors.geometry import pose_from_xyz_quat
 from factors.lie import se3_inverse, so3_log
 from pinpoint_fg.checkerboard import DEFAULT_NEEDLE_T_BOARD, BoardSpec, detect_board
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.jsonfile import load_json
 from pinpoint_fg.io.recording.schema import MAX_ABS_METRES, gt_depth_problem
 
@@ -107,7 +107,7 @@ def _number_array(doc: dict, key: str, shape: tuple[int, ...], file: Path) -> np
 
 def read_board_to_needle(path: str | Path) -> tuple[np.ndarray, BoardSpec]:
     """Read and validate a ``board_to_needle`` file -> (``board_T_needle`` (4, 4), :class:`BoardSpec`)."""
-    file = Path(path)
+    file = path_argument("path", path)  # None was pathlib's TypeError; "" read the current directory
     doc: Any = load_json(file, missing="file not found (the board-to-needle transform)")
     if not isinstance(doc, dict):
         raise InputError("must be a JSON object", file=file)

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from factors.robust import NO_LOSS, RobustLoss
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.jsonfile import load_json
 
 #: Residual types and their dimensions.
@@ -95,9 +95,11 @@ def parse_robust_spec(text: str) -> dict[str, RobustLoss]:
     ``NAME`` is a residual of :data:`ROBUST_RESIDUALS` (``-`` or ``_``; ``keypoints`` means tip and
     tail), ``LOSS`` one of none/huber/cauchy, ``K`` the threshold in standard deviations (default
     1.345 for Huber, 1.0 for Cauchy). The result is the complete setting: unlisted residuals get
-    ``none``. Raises ValueError naming the bad item.
+    ``none``. Raises ValueError naming the bad item; a residual given twice (``conic=huber,conic=cauchy``, or
+    ``keypoints`` beside ``tip``) is refused rather than the last entry silently winning.
     """
     out = {name: NO_LOSS for name in ROBUST_RESIDUALS}
+    given: dict[str, str] = {}
     text = text.strip()
     if text.lower() in ("none", "off", ""):
         return out
@@ -117,6 +119,10 @@ def parse_robust_spec(text: str) -> dict[str, RobustLoss]:
         except ValueError as exc:
             raise ValueError(f"robust item {item.strip()!r}: {exc}") from exc
         for n in names:
+            if n in given:
+                raise ValueError(f"robust item {item.strip()!r}: {n.replace('_', '-')} was already set by "
+                                 f"{given[n]!r}; give each residual once")
+            given[n] = item.strip()
             out[n] = rl
     return out
 
@@ -272,7 +278,7 @@ class NoiseConfig:
     @classmethod
     def load(cls, path: str | Path) -> NoiseConfig:
         """Read and validate a noise file; residual types it omits keep their defaults."""
-        path = Path(path)
+        path = path_argument("path", path)  # None was pathlib's TypeError; "" read the current directory
         doc = load_json(path)  # bounded nesting and integer size; InputError naming the file
         if not isinstance(doc, dict) or doc.get("format") != "pinpoint-noise":
             raise InputError('key "format" must be "pinpoint-noise"', file=path)

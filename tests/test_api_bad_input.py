@@ -431,3 +431,21 @@ def test_demo_and_benchmark_refuse_bad_sizes_before_creating_out(call: str, kwar
         else:
             run_benchmark(out=out, **{"frames": 2, "jobs": 1, **kwargs})
     assert not out.exists()
+
+
+@pytest.mark.parametrize("bad", ["", None])
+@pytest.mark.parametrize("call", ["NoiseConfig.load", "SpreadScale.load", "read_board_to_needle", "read_ply_vertices"])
+def test_loaders_name_a_path_argument_that_is_not_one(call: str, bad: object, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """``None`` was pathlib's TypeError (no argument named), ``""`` read the current directory (". cannot read: Is a
+    directory"); both are an InputError naming ``path`` (the audit's "left alone" list, closed after it)."""
+    from pinpoint_fg.groundtruth import read_board_to_needle
+    from pinpoint_fg.io.needle_mesh import read_ply_vertices
+    from pinpoint_fg.io.spread_scale import SpreadScale
+    from pinpoint_fg.noise import NoiseConfig
+
+    monkeypatch.chdir(tmp_path)
+    calls = {"NoiseConfig.load": NoiseConfig.load, "SpreadScale.load": SpreadScale.load,
+             "read_board_to_needle": read_board_to_needle, "read_ply_vertices": read_ply_vertices}
+    with pytest.raises(InputError, match="^path must be a path"):
+        calls[call](bad)

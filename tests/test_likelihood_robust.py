@@ -145,3 +145,23 @@ def test_noise_file_carries_robust_losses(tmp_path) -> None:  # noqa: ANN001
         with pytest.raises(ValueError):
             parse_robust_spec(bad)
     assert all(not v.active for v in parse_robust_spec("none").values())
+
+
+@pytest.mark.parametrize("spec", ["conic=huber,conic=cauchy", "keypoints=huber,tip=cauchy", "tip=huber,keypoints=none",
+                                  "grasp-position=huber,grasp_position=huber"])
+def test_a_residual_given_twice_in_a_robust_spec_is_refused(spec: str) -> None:
+    """The last entry silently won (``conic=huber,conic=cauchy`` tracked with Cauchy); now the error names both."""
+    with pytest.raises(ValueError, match="already set by"):
+        parse_robust_spec(spec)
+
+
+def test_the_track_command_names_a_residual_given_twice(tmp_path) -> None:  # noqa: ANN001
+    from pinpoint_fg.cli import main
+    from pinpoint_fg.sim.scenarios import simulate
+
+    run = simulate("normal", 2, 1, out=tmp_path / "run")
+    with pytest.raises(SystemExit) as exc:
+        main(["track", str(run), "--method", "map", "--robust", "conic=huber,conic=cauchy",
+              "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert not (tmp_path / "o").exists()

@@ -51,7 +51,7 @@ from scipy.optimize import least_squares
 
 from factors.geometry import NeedleModel
 from factors.lie import homogeneous
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 
 #: Length units a PLY model may use, and their size in metres.
 MODEL_UNITS: dict[str, float] = {"mm": 1e-3, "m": 1.0}
@@ -129,7 +129,7 @@ def read_ply_vertices(path: str | Path, units: str = "mm") -> np.ndarray:
     """
     from plyfile import PlyData
 
-    path = Path(path)
+    path = path_argument("path", path)  # None was pathlib's TypeError; "" read the current directory
     if units not in MODEL_UNITS:
         raise InputError(f"unknown model units {units!r}; choose from {', '.join(MODEL_UNITS)}", file=path)
     if not path.is_file():

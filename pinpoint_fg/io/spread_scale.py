@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from pinpoint_fg.errors import InputError
+from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.jsonfile import load_json
 from pinpoint_fg.io.recording.schema import json_shown
 
@@ -121,7 +121,7 @@ class SpreadScale:
     @classmethod
     def load(cls, path: str | Path) -> SpreadScale:
         """Read and validate a spread-scale file; every problem is one :class:`InputError` naming the key."""
-        path = Path(path)
+        path = path_argument("path", path)  # None was pathlib's TypeError; "" read the current directory
         doc = load_json(path)
         if not isinstance(doc, dict):
             raise InputError("the top level must be a JSON object", file=path)

@@ -1096,20 +1096,27 @@ def test_the_recording_writer_refuses_ground_truth_behind_the_camera(run: Path, 
 def test_import_bop_refuses_ground_truth_behind_the_camera(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A scene_gt.json entry with the needle behind the camera was imported (exit 0) into a run whose own reader
     then refused it; now scene_gt.json and the entry's cam_t_m2c are named before anything is written."""
+    path, idx, out = _import_bop_with_needle_depth(tmp_path, lambda z: -abs(z))
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "not in front of the camera" in line
+    assert not out.exists()
+
+
+def _import_bop_with_needle_depth(tmp_path: Path, depth: object) -> tuple[Path, int, Path]:
+    """``import-bop`` of a scene whose needle entry's ``cam_t_m2c`` z is ``depth(z)``; asserts exit code 2 and returns
+    (scene_gt.json, the entry's index, the --out that must not exist)."""
     from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
 
     info = write_bop_scene(tmp_path / "dataset", n_images=3)
     path = Path(info["scene"]) / "scene_gt.json"
     doc = json.loads(path.read_text())
     idx = next(i for i, e in enumerate(doc["1"]) if e["obj_id"] == NEEDLE_OBJ_ID)
-    doc["1"][idx]["cam_t_m2c"][2] = -abs(doc["1"][idx]["cam_t_m2c"][2])
+    doc["1"][idx]["cam_t_m2c"][2] = depth(doc["1"][idx]["cam_t_m2c"][2])
     path.write_text(json.dumps(doc))
     out = tmp_path / "run"
     assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
                  "--out", str(out)]) == 2
-    line = _one_error_line(capsys.readouterr().err)
-    assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "not in front of the camera" in line
-    assert not out.exists()
+    return path, idx, out
 
 
 def test_import_bag_refuses_ground_truth_behind_the_camera(run: Path, tmp_path: Path,
@@ -1343,17 +1350,7 @@ def test_import_bop_names_scene_gt_for_a_needle_beyond_the_format(tmp_path: Path
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
     """A scene_gt.json entry 20 m from the camera (cam_t_m2c 2e4 mm) was refused naming the run's frames.csv, a file
     that does not exist (the run is never written); now scene_gt.json and the entry's cam_t_m2c are named."""
-    from tests.bop_scene import NEEDLE_OBJ_ID, write_bop_scene
-
-    info = write_bop_scene(tmp_path / "dataset", n_images=3)
-    path = Path(info["scene"]) / "scene_gt.json"
-    doc = json.loads(path.read_text())
-    idx = next(i for i, e in enumerate(doc["1"]) if e["obj_id"] == NEEDLE_OBJ_ID)
-    doc["1"][idx]["cam_t_m2c"][2] = 2e4
-    path.write_text(json.dumps(doc))
-    out = tmp_path / "run"
-    assert main(["import-bop", str(info["scene"]), "--model", str(info["model"]), "--obj-id", str(NEEDLE_OBJ_ID),
-                 "--out", str(out)]) == 2
+    path, idx, out = _import_bop_with_needle_depth(tmp_path, lambda z: 2e4)
     line = _one_error_line(capsys.readouterr().err)
     assert str(path) in line and f"'1[{idx}].cam_t_m2c'" in line and "10 m" in line
     assert not out.exists()

@@ -19,6 +19,7 @@ import gtsam
 import numpy as np
 
 from factors import residuals as res
+from factors.conic_correlation import ArcWhitening
 from factors.geometry import PinholeCamera, _finite_float, as_points_px, as_vector
 
 #: Largest accepted |pixel coordinate| of a measurement or an intrinsic (``K``'s entries), pixels: beyond it the
@@ -233,7 +234,9 @@ def _conic_inputs(camera: object, radius_m: float, points_px: np.ndarray, bias: 
 class ConicFactor(_UnaryPoseFactor):
     """Sampson distances (M px) of M backbone pixels to the needle circle's image conic; one per frame.
 
-    ``bias`` (px, default 0) is subtracted from every distance (a calibrated residual mean).
+    ``bias`` (px, default 0) is subtracted from every distance (a calibrated residual mean). ``whitening``
+    (optional, :class:`factors.conic_correlation.ArcWhitening` of these pixels): the distances' along-arc
+    innovations instead, in arc order, for noise correlated along the arc.
     """
 
     def __init__(
@@ -244,21 +247,38 @@ class ConicFactor(_UnaryPoseFactor):
         points_px: np.ndarray,
         noise: gtsam.noiseModel.Base,
         bias: float = 0.0,
+        whitening: ArcWhitening | None = None,
     ) -> None:
         K, pts, r_m, b = _conic_inputs(camera, radius_m, points_px, bias)
+        _check_whitening(whitening, pts.shape[0])
 
         def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             r, J = res.conic_residual(T, K, r_m, pts)
-            return r - b, J
+            if whitening is None:
+                return r - b, J
+            return whitening.apply(r - b, J)
 
         super().__init__(noise, key, pts.shape[0], fn)
 
 
-class _ConicCache:
-    """All pixels' Sampson distances and Jacobians at the last pose asked for (one batched call per pose)."""
+def _check_whitening(whitening: object, count: int) -> None:
+    """ValueError unless ``whitening`` is None or an :class:`ArcWhitening` of ``count`` pixels."""
+    if whitening is None:
+        return
+    if not isinstance(whitening, ArcWhitening):
+        raise ValueError(f"whitening must be an ArcWhitening or None, got {type(whitening).__name__}")
+    if whitening.order.shape != (count,):
+        raise ValueError(f"whitening is for {whitening.order.shape[0]} pixels, the factor has {count}")
 
-    def __init__(self, K: np.ndarray, radius_m: float, points_px: np.ndarray, bias: float) -> None:
+
+class _ConicCache:
+    """All pixels' Sampson distances (or their along-arc innovations) and Jacobians at the last pose asked for
+    (one batched call per pose)."""
+
+    def __init__(self, K: np.ndarray, radius_m: float, points_px: np.ndarray, bias: float,
+                 whitening: ArcWhitening | None = None) -> None:
         self._K, self._r, self._pts, self._b = K, radius_m, points_px, bias
+        self._whitening = whitening
         self.count = int(points_px.shape[0])
         self._key: bytes | None = None
         self._rJ: tuple[np.ndarray, np.ndarray] | None = None
@@ -267,7 +287,11 @@ class _ConicCache:
         key = np.ascontiguousarray(T, dtype=float).tobytes()
         if key != self._key or self._rJ is None:
             r, J = res.conic_residual(T, self._K, self._r, self._pts)
-            self._rJ = (r[0] - self._b, J[0])
+            if self._whitening is not None:
+                r, J = self._whitening.apply(r - self._b, J)
+                self._rJ = (r[0], J[0])
+            else:
+                self._rJ = (r[0] - self._b, J[0])
             self._key = key
         return self._rJ
 
@@ -295,8 +319,12 @@ def conic_pixel_factors(
     points_px: np.ndarray,
     noise: gtsam.noiseModel.Base,
     bias: float = 0.0,
+    whitening: ArcWhitening | None = None,
 ) -> list[ConicPixelFactor]:
     """One 1-row factor per backbone pixel, each with the 1-D ``noise`` (typically a robust model).
+
+    With ``whitening`` (:class:`factors.conic_correlation.ArcWhitening` of these pixels) factor ``i`` holds the
+    ``i``-th along-arc innovation instead of pixel ``i``'s distance (the robust loss then acts per innovation).
 
     The per-pixel form of :class:`ConicFactor`: GTSAM weights a robust factor by the norm of its
     whole whitened vector, so a robust loss *per pixel* needs one factor per pixel. The sum of
@@ -306,7 +334,8 @@ def conic_pixel_factors(
     """
     K, pts, r_m, b = _conic_inputs(camera, radius_m, points_px, bias)
     _check_noise(noise, 1)
-    cache = _ConicCache(K, r_m, pts, b)
+    _check_whitening(whitening, pts.shape[0])
+    cache = _ConicCache(K, r_m, pts, b, whitening)
     return [ConicPixelFactor(key, cache, i, noise) for i in range(pts.shape[0])]
 
 

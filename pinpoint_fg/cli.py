@@ -85,6 +85,18 @@ MAX_FRAMES = 10**12
 _count = _int_at_least(1, MAX_FRAMES)
 
 
+def _correlation_px(text: str) -> float:
+    from pinpoint_fg.noise import MAX_CORRELATION_PX
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of pixels") from None
+    if not 0.0 <= value <= MAX_CORRELATION_PX:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"{text!r}: a correlation length in [0, {MAX_CORRELATION_PX:g}] px")
+    return value
+
+
 def _particles(text: str) -> int:
     """An argparse type: a particle count in [1, MAX_PARTICLES], the most a result holds (``--particles 1e11`` was
     NumPy's 11.6 TiB MemoryError traceback after the run had been read)."""
@@ -164,6 +176,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         verdict_workers=1,  # bimodality verdicts in a worker process, alongside the tracker
         robust=args.robust,
         spread_scale=args.spread_scale,
+        conic_correlation_px=args.conic_correlation_px,
     )
     print(f"wrote {out}")
     return 0
@@ -174,7 +187,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_file
 
     prepare_output_file(args.out, args.overwrite, "noise file", inputs=args.runs)
-    noise = calibrate_runs(args.runs)
+    noise = calibrate_runs(args.runs, fit_correlation=args.conic_correlation)
     noise.save(args.out)
     print(format_table(noise))
     print(f"wrote {args.out}")
@@ -410,6 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
                    help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none); "
                         "'none' switches all off; default: the noise file's or the built-in defaults")
+    s.add_argument("--conic-correlation-px", type=_correlation_px, default=None, metavar="PX",
+                   help="correlation length of the backbone residuals along the arc (0: independent pixels); "
+                        "default: the noise file's, else 0")
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
                    help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
@@ -420,6 +436,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("calibrate", help="noise statistics of every residual at ground truth")
     s.add_argument("runs", type=Path, nargs="+")
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--conic-correlation", action="store_true",
+                   help="also fit the backbone residuals' correlation length along the arc (default: independent "
+                        "pixels, the paper's model)")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_calibrate)
 

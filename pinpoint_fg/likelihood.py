@@ -15,6 +15,9 @@ form is iteratively reweighted least squares exactly as GTSAM linearises a robus
 ``w_b = rho_b'(d_b) / d_b``, ``e_b -> sqrt(w_b) e_b`` and ``J_b -> sqrt(w_b) J_b``, so per pose the
 gradient is ``sum_b w_b J_b^T e_b`` (the exact gradient of ``nll``) and ``H = sum_b w_b J_b^T J_b``,
 in GTSAM's right chart.
+With a correlation length ``ell > 0`` (``NoiseConfig.conic_correlation_px``) the backbone's residuals are
+first decorrelated along the arc (:mod:`factors.conic_correlation`: ``r -> L (r - mu)``, ``J -> L J``, one
+innovation per pixel, each then whitened and robustly weighted as a pixel was).
 ``gtsam_factors(key)`` returns the same terms as GTSAM factors (used by the MAP baseline and
 by the tests that prove the two paths equal).
 
@@ -31,6 +34,7 @@ import gtsam
 import numpy as np
 
 from factors import residuals as res
+from factors.conic_correlation import ArcWhitening
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.gtsam_factors import (
     ConicFactor,
@@ -152,6 +156,10 @@ class FrameLikelihood:
         self._tip, self._tail, self._grasp, self._tgrasp = nd.tip_m, nd.tail_m, nd.grasp_m, nd.grasp_tangent
         self.dim = sum(self._term_dim(name, data) for name, data in self._terms)
         self._gn_memo: tuple[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+        ell = model.noise.conic_correlation_px
+        #: the backbone's along-arc decorrelation (None: independent pixels)
+        self.arc_whitening = (ArcWhitening.from_points(self._data["conic"], ell)
+                              if ell > 0 and "conic" in self._data else None)
         # frames with equal keys evaluate their stacked terms in one call (:func:`gauss_newton_frames`):
         # everything those terms read besides the measurement (models are rebuilt per frame, equal by value)
         noise = model.noise
@@ -197,6 +205,12 @@ class FrameLikelihood:
         """
         n = self._noise[name]
         W = self._W[name]
+        if name == "conic" and self.arc_whitening is not None:
+            e, J = self.arc_whitening.apply(r - n.mean[0], J)  # fresh arrays: scaled in place
+            e *= W[0, 0]
+            if J is not None:
+                J *= W[0, 0]
+            return e, J
         if name == "conic":
             # one scalar noise per pixel: W and mean are 1x1
             if J is not None:
@@ -276,7 +290,8 @@ class FrameLikelihood:
 
     def residuals(self, cam_T_needle: np.ndarray) -> dict[str, np.ndarray]:
         """Each term's residual less its noise mean, unwhitened, ``(N, d)`` by term name (:attr:`term_names` order):
-        ``r - mean`` in the term's units (``noise.RESIDUAL_UNITS``), what :meth:`whitened` multiplies by ``W``."""
+        ``r - mean`` in the term's units (``noise.RESIDUAL_UNITS``), what :meth:`whitened` multiplies by ``W``
+        (the backbone's after its along-arc decorrelation, when :attr:`arc_whitening` is set)."""
         T = res.as_pose_batch(cam_T_needle)
         return {name: self._raw(name, data, T, False)[0] - self._noise[name].mean
                 for name, data in self._terms}
@@ -345,11 +360,12 @@ class FrameLikelihood:
                 pts = np.asarray(data)
                 if rl.active:
                     pixel = rl.gtsam_model(gtsam.noiseModel.Isotropic.Sigma(1, float(n.sigma[0])))
-                    out.extend(conic_pixel_factors(key, cam, nd.radius_m, pts, pixel, bias=float(n.mean[0])))
+                    out.extend(conic_pixel_factors(key, cam, nd.radius_m, pts, pixel, bias=float(n.mean[0]),
+                                                   whitening=self.arc_whitening))
                 else:
                     out.append(ConicFactor(key, cam, nd.radius_m, pts,
                                            gtsam.noiseModel.Isotropic.Sigma(len(pts), float(n.sigma[0])),
-                                           bias=float(n.mean[0])))
+                                           bias=float(n.mean[0]), whitening=self.arc_whitening))
             elif name == "grasp_position":
                 out.append(GraspPositionFactor(key, nd.grasp_m, np.asarray(data) + n.mean,
                                                rl.gtsam_model(n.gtsam_model())))

@@ -14,7 +14,9 @@ without it keeps :data:`DEFAULT_ROBUST`)::
 
      "robust": {"conic": {"loss": "huber", "k": 1.345}, "tip": {"loss": "none"}, ...}
 
-the robust loss of each measurement residual (:mod:`factors.robust`, thresholds in whitened units).
+the robust loss of each measurement residual (:mod:`factors.robust`, thresholds in whitened units), and
+optionally ``"conic_correlation_px": ell`` (default 0): the correlation length of the backbone residuals along
+the arc (:mod:`factors.conic_correlation`; 0 = independent pixels, the paper's model).
 Units are those of the residual:
 pixels (tip, tail, conic), metres (grasp_position, camera axes), unitless
 (grasp_perpendicular), and the tangent ``[omega (rad); v (m)]`` of the motion residual
@@ -63,6 +65,10 @@ TABLE_I_SIGMA: dict[str, tuple[float, ...]] = {
 #: (~1.1 deg) and 0.3 mm per frame admit ~35 deg/s and ~9 mm/s of unmodelled motion at 1 sigma.
 DEFAULT_MOTION_SIGMA: tuple[float, ...] = (0.02, 0.02, 0.02, 0.3e-3, 0.3e-3, 0.3e-3)
 
+
+#: Largest accepted correlation length of the backbone residuals (px): far beyond any image's size, a larger one
+#: is a unit mistake (the whitening would treat a whole mask as one pixel).
+MAX_CORRELATION_PX = 1e4
 
 #: Residual types that take a robust loss (the motion residual stays Gaussian).
 ROBUST_RESIDUALS: tuple[str, ...] = ("tip", "tail", "conic", "grasp_position", "grasp_perpendicular")
@@ -218,8 +224,16 @@ class NoiseConfig:
     """Residual type -> its noise; keys are those of RESIDUAL_DIMS."""
     robust: dict[str, RobustLoss] = field(default_factory=_default_robust)
     """Residual type -> its robust loss; keys are those of ROBUST_RESIDUALS (missing ones: DEFAULT_ROBUST)."""
+    conic_correlation_px: float = 0.0
+    """Correlation length (px) of the backbone residuals along the arc (:mod:`factors.conic_correlation`); 0 =
+    independent pixels."""
 
     def __post_init__(self) -> None:
+        ell = self.conic_correlation_px
+        if isinstance(ell, bool) or not isinstance(ell, (int, float)) or not (0.0 <= ell <= MAX_CORRELATION_PX):
+            raise ValueError(f"conic_correlation_px must be a number of pixels in [0, {MAX_CORRELATION_PX:g}], "
+                             f"got {ell!r}")
+        object.__setattr__(self, "conic_correlation_px", float(ell))
         rob = _default_robust()
         rob.update(self.robust)
         for k, v in rob.items():
@@ -246,7 +260,12 @@ class NoiseConfig:
 
     def with_robust(self, robust: dict[str, RobustLoss]) -> NoiseConfig:
         """A copy with the robust losses replaced by ``robust`` (unlisted residuals: DEFAULT_ROBUST)."""
-        return NoiseConfig(residuals=dict(self.residuals), robust=dict(robust))
+        return NoiseConfig(residuals=dict(self.residuals), robust=dict(robust),
+                           conic_correlation_px=self.conic_correlation_px)
+
+    def with_conic_correlation(self, length_px: float) -> NoiseConfig:
+        """A copy with the backbone residuals' correlation length set to ``length_px`` (0: independent)."""
+        return NoiseConfig(residuals=dict(self.residuals), robust=dict(self.robust), conic_correlation_px=length_px)
 
     @property
     def process_cov(self) -> np.ndarray:
@@ -264,6 +283,7 @@ class NoiseConfig:
             },
             "robust": {k: ({"loss": v.kind, "k": v.k} if v.active else {"loss": "none"})
                        for k, v in self.robust.items()},
+            "conic_correlation_px": self.conic_correlation_px,
         }
 
     def save(self, path: str | Path) -> None:
@@ -312,7 +332,11 @@ class NoiseConfig:
             problem = _variance_problem(k, parsed[k].cov)
             if problem is not None:
                 raise InputError(f"{where}: {problem}", file=path)
-        return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path))
+        ell = doc.get("conic_correlation_px", 0.0)
+        if isinstance(ell, bool) or not isinstance(ell, (int, float)) or not (0.0 <= ell <= MAX_CORRELATION_PX):
+            raise InputError(f'key "conic_correlation_px" must be a number of pixels in [0, {MAX_CORRELATION_PX:g}], '
+                             f"got {ell!r}", file=path)
+        return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path), conic_correlation_px=ell)
 
     def process_variance_whitened(self, scale: np.ndarray) -> float:
         """``tr(S^-1 Q S^-1) / 6``: the mean per-axis process variance in the kernel's whitened units."""

@@ -147,6 +147,7 @@ def track_recording(
     robust: dict[str, RobustLoss] | None = None,
     blas_threads: int | None = 1,
     spread_scale: str | Path | None = None,
+    conic_correlation_px: float | None = None,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
@@ -157,7 +158,8 @@ def track_recording(
     modes) behind it (:class:`~pinpoint_fg.offload.Offload`; 0: all inline, same files; ``pinpoint-fg track``
     uses 1; the worker is spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
-    noise file or the defaults.
+    noise file or the defaults; ``conic_correlation_px`` likewise the backbone residuals' correlation length
+    along the arc (:mod:`factors.conic_correlation`; 0: independent pixels, the default).
     ``spread_scale``: a file of ``calibrate-spread`` (:mod:`pinpoint_fg.io.spread_scale`); the q95
     columns written are the tracker's bounds times the method's factors, the covariances of ``modes.csv``
     are scaled to match (:func:`~pinpoint_fg.io.spread_scale.scaled_cov_xi`: rotation block ``kappa_rot^2``,
@@ -186,6 +188,8 @@ def track_recording(
     for name, value in (("noise_file", noise_file), ("spread_scale", spread_scale)):
         if value is not None:  # a number was pathlib's TypeError; "" read the current directory as the file
             path_argument(name, value)
+    if conic_correlation_px is not None:
+        NoiseConfig(conic_correlation_px=conic_correlation_px)  # refused here (ValueError), before any output
     if robust is not None and not isinstance(robust, Mapping):
         raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
                          f"SPEC), got {type(robust).__name__}")  # a str was "dictionary update sequence element #0"
@@ -197,7 +201,7 @@ def track_recording(
     failed = True
     try:
         out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
-                     robust, blas_threads, offload, scale)
+                     robust, blas_threads, offload, scale, conic_correlation_px)
         failed = False
     finally:
         offload.close(failed)
@@ -222,7 +226,7 @@ def _first_line(exc: Exception) -> str:
 def _track(run: str | Path, method: str, out: Path, particles: int | None, window: int,
            noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
            max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
-           offload: Offload, scale: dict | None = None) -> Path:
+           offload: Offload, scale: dict | None = None, conic_correlation_px: float | None = None) -> Path:
     """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started.
 
     ``scale``: :func:`~pinpoint_fg.io.spread_scale.settings_entry` of the spread scale, or None.
@@ -233,6 +237,8 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
     noise = NoiseConfig.load(noise_file) if noise_file is not None else None
     if robust is not None:
         noise = (noise or NoiseConfig()).with_robust(robust)
+    if conic_correlation_px is not None:
+        noise = (noise or NoiseConfig()).with_conic_correlation(conic_correlation_px)
     config = tracker_config(recording, method, particles, window, noise, disable, seed)
     tracker = make_tracker(method, config)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]

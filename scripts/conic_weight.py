@@ -14,8 +14,12 @@ Usage (one thread)::
 
     .venv/bin/python scripts/conic_weight.py correlation RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py sweep C svn,map RUN [RUN ...]
+    .venv/bin/python scripts/conic_weight.py correlated ELL svn,map RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py terms RUN RESULT_DIR FIRST LAST STEP
     .venv/bin/python scripts/conic_weight.py trail C RUN FIRST LAST
+
+``correlated`` is ``sweep`` with the default noise but the backbone residuals correlated along the arc with length
+``ELL`` px (``NoiseConfig.conic_correlation_px``, :mod:`factors.conic_correlation`; 0 = independent pixels).
 
 ``trail`` tracks RUN with SVN at weight ``1 / c^2`` and prints, for frames FIRST..LAST-1, how far (nats of
 log-posterior) the best particle within 2 mm / 10 deg of the truth trails the best particle overall, and
@@ -75,10 +79,11 @@ def correlation(run: Path) -> None:
           f"integrated length (lags <= {LAGS}) {tau:.1f} px")
 
 
-def sweep(c: float, methods: list[str], run: Path) -> None:
+def sweep(c: float, methods: list[str], run: Path, noise: NoiseConfig | None = None, label: str = "c") -> None:
+    """``noise``: instead of :func:`conic_scaled`, this noise (``c`` is then only printed, as ``label=c``)."""
     rec = read_recording(run)
     for method in methods:
-        tracker = make_tracker(method, tracker_config(rec, method, noise=conic_scaled(c),
+        tracker = make_tracker(method, tracker_config(rec, method, noise=conic_scaled(c) if noise is None else noise,
                                                       disable=suggested_disable(run), seed=0))
         et, er, kept, cov_t, cov_r = [], [], [], [], []
         for frame in rec.frames:
@@ -92,7 +97,7 @@ def sweep(c: float, methods: list[str], run: Path) -> None:
             cov_t.append(e.trans_m[0] <= est.q95_trans_m)
             cov_r.append(e.rot_rad[0] <= est.q95_rot_rad)
             kept.append(bool(np.any(near_truth(est.particles, T))))
-        print(f"c={c:<4} {run.name:<16} {method:<4} {np.mean(et):6.3f} mm {np.mean(er):7.2f} deg  "
+        print(f"{label}={c:<4} {run.name:<16} {method:<4} {np.mean(et):6.3f} mm {np.mean(er):7.2f} deg  "
               f"kept {np.mean(kept):5.0%}  q95 coverage {np.mean(cov_t):4.0%} / {np.mean(cov_r):4.0%}", flush=True)
 
 
@@ -134,6 +139,10 @@ if __name__ == "__main__":
     if len(sys.argv) >= 3 and sys.argv[1] == "correlation":
         for path in sys.argv[2:]:
             correlation(Path(path))
+    elif len(sys.argv) >= 5 and sys.argv[1] == "correlated":
+        for path in sys.argv[4:]:
+            ell = float(sys.argv[2])
+            sweep(ell, sys.argv[3].split(","), Path(path), NoiseConfig(conic_correlation_px=ell), "ell")
     elif len(sys.argv) >= 5 and sys.argv[1] == "sweep":
         for path in sys.argv[4:]:
             sweep(float(sys.argv[2]), sys.argv[3].split(","), Path(path))

@@ -12,10 +12,15 @@ from factors.geometry import PinholeCamera
 from factors.lie import se3_inverse, se3_log
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.eval.calibrate import calibrate_runs, format_table, residuals_at_truth
+from pinpoint_fg.eval.calibrate import (
+    calibrate_runs,
+    fit_conic_correlation,
+    format_table,
+    residuals_at_truth,
+)
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.writer import RecordingWriter, replace_ground_truth
-from pinpoint_fg.noise import NoiseConfig
+from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.sim.config import SimConfig
 from pinpoint_fg.sim.kinematics import needle_T_grasper
 from pinpoint_fg.sim.scenarios import SimRun, simulate, simulate_frames
@@ -139,3 +144,50 @@ def test_format_table_is_shaped_like_table_i() -> None:
     assert "1.235 px" in rows["Conic"]
     assert "(1.006, 1.012; 0.921, 0.680) px" in rows["Keypoints (tip u, v; tail u, v)"]
     assert all(ln.rstrip().endswith("default") for ln in lines[2:])
+
+
+def _arc_frames(rng: np.random.Generator, ell: float, count: int = 60) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Masked frames of 150 pixels ~1 px apart along circular arcs, residuals an OU process of length ``ell`` px
+    (``ell = 0``: independent), pixels given in a shuffled order (as raster order is not the arc's)."""
+    frames = []
+    for _ in range(count):
+        angles = np.linspace(0.0, 1.5, 150) + rng.uniform(0, 2 * np.pi)
+        radius = 150.0 / 1.5
+        pts = np.c_[np.cos(angles), np.sin(angles)] * radius + 500.0
+        s = radius * (angles - angles[0])
+        cov = np.exp(-np.abs(s[:, None] - s[None, :]) / ell) if ell > 0 else np.eye(150)
+        r = 0.1 + 1.3 * rng.multivariate_normal(np.zeros(150), cov)
+        perm = rng.permutation(150)
+        frames.append((pts[perm], r[perm]))
+    return frames
+
+
+@pytest.mark.parametrize("ell", [5.0, 15.0, 40.0])
+def test_fit_conic_correlation_recovers_the_length_of_an_ou_process(ell: float) -> None:
+    """The integrated autocorrelation of an OU process is its length: recovered within 15 % (seeded, 60 frames of
+    150 px; the estimate's sampling error grows with ell / arc length)."""
+    noise = ResidualNoise(np.r_[0.1], np.array([[1.69]]))
+    got = fit_conic_correlation(_arc_frames(np.random.default_rng(int(ell)), ell), noise)
+    assert abs(got / ell - 1.0) < 0.15, got
+
+
+def test_fit_conic_correlation_of_independent_pixels_is_about_zero() -> None:
+    noise = ResidualNoise(np.r_[0.1], np.array([[1.69]]))
+    assert fit_conic_correlation(_arc_frames(np.random.default_rng(1), 0.0), noise) < 0.6
+    assert fit_conic_correlation([], noise) == 0.0
+    assert fit_conic_correlation([(np.zeros((1, 2)), np.zeros(1))], noise) == 0.0
+
+
+def test_cli_calibrate_conic_correlation_writes_the_fitted_length(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture) -> None:
+    """The simulator's mask boundary noise is smooth along the arc (squared-exponential, 20 px): the fitted
+    length is that process's integrated correlation, ~25 px (sqrt(pi / 2) * 20), and lands in the noise file
+    and its table; without the flag the file keeps independent pixels."""
+    path = simulate("calibration", 30, seed=1, out=tmp_path / "run", config=WHITE)
+    assert main(["calibrate", str(path), "--conic-correlation", "--out", str(tmp_path / "c.json")]) == 0
+    assert "Conic correlation length" in capsys.readouterr().out
+    ell = NoiseConfig.load(tmp_path / "c.json").conic_correlation_px
+    assert 10.0 < ell < 60.0, ell
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "n.json")]) == 0
+    assert NoiseConfig.load(tmp_path / "n.json").conic_correlation_px == 0.0
+    assert "Conic correlation length" not in capsys.readouterr().out

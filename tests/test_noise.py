@@ -64,3 +64,22 @@ def test_a_variance_that_broke_the_map_baseline_is_one_line_before_tracking(name
     lines = [s for s in done.stderr.splitlines() if s.strip()]
     assert len(lines) == 1 and str(noise) in lines[0] and f"residuals.{name}" in lines[0], done.stderr
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_conic_correlation_length_round_trips_and_bad_ones_are_refused(tmp_path: Path) -> None:
+    path = tmp_path / "noise.json"
+    NoiseConfig(conic_correlation_px=23.5).save(path)
+    assert NoiseConfig.load(path).conic_correlation_px == 23.5
+    assert NoiseConfig(conic_correlation_px=23.5).with_robust({}).conic_correlation_px == 23.5
+    doc = NoiseConfig().to_json()
+    del doc["conic_correlation_px"]  # a file written before the key existed: independent pixels
+    path.write_text(json.dumps(doc))
+    assert NoiseConfig.load(path).conic_correlation_px == 0.0
+    for bad in (-1.0, "20", True, 1e5, None):
+        doc["conic_correlation_px"] = bad
+        path.write_text(json.dumps(doc))
+        with pytest.raises(InputError, match="conic_correlation_px"):
+            NoiseConfig.load(path)
+    for bad in (-1.0, float("nan"), float("inf"), 1e5, True):
+        with pytest.raises(ValueError, match="conic_correlation_px"):
+            NoiseConfig(conic_correlation_px=bad)

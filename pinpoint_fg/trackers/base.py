@@ -100,6 +100,7 @@ class Tracker(abc.ABC):
         k = c.kinematics
         return {"method": self.method, "particles": c.particles, "window": c.window, "seed": c.seed,
                 "disabled": list(c.switches.disabled()), "robust": format_robust(c.noise.robust),
+                "conic_correlation_px": c.noise.conic_correlation_px,
                 "kinematics_check": {"reference_dt_s": k.reference_dt_s, "jump_quantile": k.jump_quantile,
                                      "max_test_gap_s": k.max_test_gap_s, "max_scale": k.max_scale,
                                      "correct_registration": k.correct_registration,

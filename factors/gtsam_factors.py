@@ -236,7 +236,9 @@ class ConicFactor(_UnaryPoseFactor):
 
     ``bias`` (px, default 0) is subtracted from every distance (a calibrated residual mean). ``whitening``
     (optional, :class:`factors.conic_correlation.ArcWhitening` of these pixels): the distances' along-arc
-    innovations instead, in arc order, for noise correlated along the arc.
+    innovations instead, in arc order, for noise correlated along the arc. ``distance``: "sampson"
+    (:func:`factors.residuals.conic_residual`, the default) or "geometric"
+    (:func:`factors.residuals.conic_geometric_residual`).
     """
 
     def __init__(
@@ -248,17 +250,28 @@ class ConicFactor(_UnaryPoseFactor):
         noise: gtsam.noiseModel.Base,
         bias: float = 0.0,
         whitening: ArcWhitening | None = None,
+        distance: str = "sampson",
     ) -> None:
         K, pts, r_m, b = _conic_inputs(camera, radius_m, points_px, bias)
         _check_whitening(whitening, pts.shape[0])
+        residual = _conic_distance(distance)
 
         def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            r, J = res.conic_residual(T, K, r_m, pts)
+            r, J = residual(T, K, r_m, pts)
             if whitening is None:
                 return r - b, J
             return whitening.apply(r - b, J)
 
         super().__init__(noise, key, pts.shape[0], fn)
+
+
+def _conic_distance(distance: object) -> Callable:
+    """The residual function of a conic factor's ``distance`` ("sampson" or "geometric"; ValueError otherwise)."""
+    if distance == "sampson":
+        return res.conic_residual
+    if distance == "geometric":
+        return res.conic_geometric_residual
+    raise ValueError(f"distance must be 'sampson' or 'geometric', got {distance!r}")
 
 
 def _check_whitening(whitening: object, count: int) -> None:
@@ -276,9 +289,10 @@ class _ConicCache:
     (one batched call per pose)."""
 
     def __init__(self, K: np.ndarray, radius_m: float, points_px: np.ndarray, bias: float,
-                 whitening: ArcWhitening | None = None) -> None:
+                 whitening: ArcWhitening | None = None, distance: str = "sampson") -> None:
         self._K, self._r, self._pts, self._b = K, radius_m, points_px, bias
         self._whitening = whitening
+        self._residual = _conic_distance(distance)
         self.count = int(points_px.shape[0])
         self._key: bytes | None = None
         self._rJ: tuple[np.ndarray, np.ndarray] | None = None
@@ -286,7 +300,7 @@ class _ConicCache:
     def __call__(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         key = np.ascontiguousarray(T, dtype=float).tobytes()
         if key != self._key or self._rJ is None:
-            r, J = res.conic_residual(T, self._K, self._r, self._pts)
+            r, J = self._residual(T, self._K, self._r, self._pts)
             if self._whitening is not None:
                 r, J = self._whitening.apply(r - self._b, J)
                 self._rJ = (r[0], J[0])
@@ -320,11 +334,13 @@ def conic_pixel_factors(
     noise: gtsam.noiseModel.Base,
     bias: float = 0.0,
     whitening: ArcWhitening | None = None,
+    distance: str = "sampson",
 ) -> list[ConicPixelFactor]:
     """One 1-row factor per backbone pixel, each with the 1-D ``noise`` (typically a robust model).
 
     With ``whitening`` (:class:`factors.conic_correlation.ArcWhitening` of these pixels) factor ``i`` holds the
     ``i``-th along-arc innovation instead of pixel ``i``'s distance (the robust loss then acts per innovation).
+    ``distance``: as :class:`ConicFactor`'s.
 
     The per-pixel form of :class:`ConicFactor`: GTSAM weights a robust factor by the norm of its
     whole whitened vector, so a robust loss *per pixel* needs one factor per pixel. The sum of
@@ -335,7 +351,7 @@ def conic_pixel_factors(
     K, pts, r_m, b = _conic_inputs(camera, radius_m, points_px, bias)
     _check_noise(noise, 1)
     _check_whitening(whitening, pts.shape[0])
-    cache = _ConicCache(K, r_m, pts, b, whitening)
+    cache = _ConicCache(K, r_m, pts, b, whitening, distance)
     return [ConicPixelFactor(key, cache, i, noise) for i in range(pts.shape[0])]
 
 

@@ -160,38 +160,28 @@ def needle_image_conic(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float)
     return C * sign[:, None, None]
 
 
-def conic_residual(
-    cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray, jacobian: bool = True
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Sampson distance (pixels) of each backbone pixel to the image conic of the needle circle.
-
-    ``H = K [r1 r2 t]`` maps the needle plane to the image; with ``A = adj(H)`` (the adjugate,
-    ``H^-1 ∝ A``) the conic is ``C = A^T Q A``, ``Q = diag(1, 1, -r^2)`` (paper Eq. for C(T)).
-    For a pixel ``x = (u, v, 1)``: ``y = A x``, ``f = x^T C x = y1^2 + y2^2 - r^2 y3^2``,
-    ``g = grad_(u,v) f = 2 (A^T Q y)_{1:2}`` (image coordinates only — the paper's 3-vector norm
-    is a slip, DESIGN.md), and the residual is ``s = f / |g|``.
-
-    The Sampson distance is invariant to the scale of ``C``, so ``A`` is normalised per pose to
-    unit Frobenius norm (its derivative then drops out of ``ds``). The denominator is
-    regularised without a scale: ``s = f |g| / (|g|^2 + (f / D)^2)`` with
-    ``D = SAMPSON_MAX_PX``. It differs from ``f / |g|`` by a relative ``(s / D)^2`` (< 1e-12 for
-    any pixel within 100 px of the conic) and stays finite where ``g = 0`` — at the conic's
-    centre, and on the double line an edge-on needle projects to (``H`` singular, ``A`` rank 1,
-    ``C = l l^T``) — where such pixels read 0 (0/0 is defined as 0). ``|s|`` never exceeds
-    ``D / 2``. The circle is the full circle, not the arc (the paper's model). A circle behind
-    the camera projects to the same conic: this residual cannot see cheirality.
-
-    Internally the pixels are centred and scaled (``x = P xh``) so every product is O(1); ``f``
-    is unchanged by that and the image gradient scales exactly, so the result is the same
-    Sampson distance in pixels.
-
-    ``points_px`` ``(M, 2)`` are undistorted pixels. Returns ``r (N, M)``, ``J (N, M, 6)``
-    (``J`` is None with ``jacobian=False``, which skips its computation; ``r`` is identical).
-    """
+def _conic_setup(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray, jacobian: bool
+                 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+    """``(T, pts, sc, phi, Ch, coef)`` of a conic residual's arguments: the checked poses and pixels, then
+    :func:`_pixel_basis`'s scale and basis and :func:`_conic_coefficients` in it. The pixels are centred and
+    scaled (``x = P xh``, ``P = [[s, 0, cu], [0, s, cv], [0, 0, 1]]``) so every term is O(1): ``f`` is unchanged
+    and the image gradient scales by ``s`` (distances in pixels are ``s`` times those in the basis)."""
     T = as_pose_batch(cam_T_needle)
-    K = np.asarray(K, dtype=float)
     pts = np.asarray(points_px, dtype=float)
-    N, M = T.shape[0], pts.shape[0]
+    _, sc, P, phi = _pixel_basis(pts)
+    C, coef = _conic_coefficients(T, K, radius_m, P, jacobian)
+    return T, pts, sc, phi, C, coef
+
+
+def _conic_coefficients(T: np.ndarray, K: np.ndarray, radius_m: float, P: np.ndarray, jacobian: bool
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The needle circle's image conic in the pixel basis ``x = P xh`` (:func:`_pixel_basis`), per pose, and the
+    coefficients of ``f``, ``g1``, ``g2`` (value and, with ``jacobian``, the six derivatives) on
+    ``phi = [u^2, 2uv, v^2, 2u, 2v, 1]``: ``Ch (N, 3, 3)`` (unit Frobenius norm) and ``coef (N, n7, 3, 6)``
+    (``n7`` = 7, or 1 without ``jacobian``). :func:`conic_residual` and :func:`conic_geometric_residual` share it.
+    """
+    N = T.shape[0]
+    K = np.asarray(K, dtype=float)
     R, t = T[:, :3, :3], T[:, :3, 3]
     KR = K @ R
     h1, h2, h3 = KR[:, :, 0], KR[:, :, 1], t @ K.T
@@ -200,10 +190,6 @@ def conic_residual(
     A = cross(np.stack([h2, h3, h1], axis=1), np.stack([h3, h1, h2], axis=1))  # (N, 3, 3), C order
     scale = 1.0 / np.maximum(np.sqrt(np.add.reduce(A * A, axis=(1, 2))), 1e-300)  # = 1 / Frobenius norm
     A = A * scale[:, None, None]
-
-    # Work in centred, scaled pixels x = P xh (P = [[s, 0, cu], [0, s, cv], [0, 0, 1]]) so every term
-    # is O(1): f is unchanged, the image gradient scales by s, and s_px = s * f / |gh|.
-    centre, sc, P, phi = _pixel_basis(pts)
     Q = _conic_q(radius_m)
     # Ch = P^T A^T Q A P (N, 3, 3), normalised (scale invariance again)
     AP = A @ P
@@ -233,7 +219,39 @@ def conic_residual(
     # (N * 7 * 3, 6) @ (6, M) product: f, g1, g2 and their derivatives for every pixel at once.
     n7 = Call.shape[1]
     flat = np.concatenate([Call.reshape(N, n7, 9), np.zeros((N, n7, 1))], axis=2)  # index 9 reads 0
-    coef = flat[:, :, _CONIC_COEF_INDEX] * _CONIC_COEF_MULT  # (N, n7, 3, 6)
+    return C, flat[:, :, _CONIC_COEF_INDEX] * _CONIC_COEF_MULT  # (N, n7, 3, 6)
+
+
+def conic_residual(
+    cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Sampson distance (pixels) of each backbone pixel to the image conic of the needle circle.
+
+    ``H = K [r1 r2 t]`` maps the needle plane to the image; with ``A = adj(H)`` (the adjugate,
+    ``H^-1 ∝ A``) the conic is ``C = A^T Q A``, ``Q = diag(1, 1, -r^2)`` (paper Eq. for C(T)).
+    For a pixel ``x = (u, v, 1)``: ``y = A x``, ``f = x^T C x = y1^2 + y2^2 - r^2 y3^2``,
+    ``g = grad_(u,v) f = 2 (A^T Q y)_{1:2}`` (image coordinates only — the paper's 3-vector norm
+    is a slip, DESIGN.md), and the residual is ``s = f / |g|``.
+
+    The Sampson distance is invariant to the scale of ``C``, so ``A`` is normalised per pose to
+    unit Frobenius norm (its derivative then drops out of ``ds``). The denominator is
+    regularised without a scale: ``s = f |g| / (|g|^2 + (f / D)^2)`` with
+    ``D = SAMPSON_MAX_PX``. It differs from ``f / |g|`` by a relative ``(s / D)^2`` (< 1e-12 for
+    any pixel within 100 px of the conic) and stays finite where ``g = 0`` — at the conic's
+    centre, and on the double line an edge-on needle projects to (``H`` singular, ``A`` rank 1,
+    ``C = l l^T``) — where such pixels read 0 (0/0 is defined as 0). ``|s|`` never exceeds
+    ``D / 2``. The circle is the full circle, not the arc (the paper's model). A circle behind
+    the camera projects to the same conic: this residual cannot see cheirality.
+
+    Internally the pixels are centred and scaled (``x = P xh``) so every product is O(1); ``f``
+    is unchanged by that and the image gradient scales exactly, so the result is the same
+    Sampson distance in pixels.
+
+    ``points_px`` ``(M, 2)`` are undistorted pixels. Returns ``r (N, M)``, ``J (N, M, 6)``
+    (``J`` is None with ``jacobian=False``, which skips its computation; ``r`` is identical).
+    """
+    T, pts, sc, phi, _, coef = _conic_setup(cam_T_needle, K, radius_m, points_px, jacobian)
+    N, M, n7 = T.shape[0], pts.shape[0], coef.shape[1]
     out = (coef.reshape(-1, 6) @ phi).reshape(N, n7, 3, M)
     f, g1, g2 = out[:, 0, 0], out[:, 0, 1], out[:, 0, 2]  # (N, M)
     g2s = g1 * g1 + g2 * g2
@@ -259,6 +277,135 @@ def conic_residual(
     J += np.multiply(out[:, 1:, 2], (g2 * q)[:, None], out=tmp)
     return r, np.swapaxes(J, 1, 2)
 
+
+#: :func:`conic_geometric_residual` treats an ellipse with ``b / a`` below this (a needle within 0.06 deg of
+#: edge-on) as the double line an exactly edge-on circle projects to, and takes the Sampson distance there: the
+#: closest point then sits at an end whose radius of curvature ``b^2 / a`` is below 1e-6 of the ellipse, and the
+#: distance's derivative there is no longer resolved (measured against finite differences: 1e-5 failed).
+THIN_ELLIPSE_RATIO = 1e-3
+
+#: Bracketed Newton iterations at most of :func:`conic_geometric_residual`'s foot-point search (it stops earlier
+#: once every step is below round-off; each iteration narrows the bracket at least by half where Newton leaves it).
+FOOT_POINT_ITERATIONS = 60
+
+
+def _ellipse_frames(C: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Centre ``m (N, 2)``, semi-axes ``a >= b (N,)``, unit major and minor axes ``e1, e2 (N, 2)`` of conics
+    ``C (N, 3, 3)`` (``x^T C x = 0``, ``x = (u, v, 1)``), and ``ok (N,)``: which are real, proper ellipses.
+
+    ``(x - m)^T A2 (x - m) = k`` with ``A2 = C[:2, :2]``, ``m = -A2^-1 C[:2, 2]``, ``k = -C[:2, 2] . m - C[2, 2]``;
+    ``A2 / k`` has eigenvalues ``1 / a^2 <= 1 / b^2``, the smaller from the determinant (no cancellation for a thin
+    ellipse). Rows that are not ellipses (hyperbola, parabola, a line pair or double line, imaginary) get
+    harmless placeholders and ``ok`` False.
+    """
+    p, q, r = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+    det = p * r - q * q
+    ok = det > 0
+    idet = 1.0 / np.where(ok, det, 1.0)
+    bu, bv = C[:, 0, 2], C[:, 1, 2]
+    mu = -(r * bu - q * bv) * idet
+    mv = -(p * bv - q * bu) * idet
+    k = -(bu * mu + bv * mv) - C[:, 2, 2]
+    ok &= (k * p > 0) & np.isfinite(k)
+    ik = 1.0 / np.where(ok, k, 1.0)
+    p, q, r = p * ik, q * ik, r * ik
+    half = 0.5 * (p - r)
+    big = 0.5 * (p + r) + np.hypot(half, q)  # 1 / b^2
+    small = (p * r - q * q) / np.where(ok, big, 1.0)  # 1 / a^2 = det / (1 / b^2)
+    ok &= (small > 0) & np.isfinite(big) & (small > THIN_ELLIPSE_RATIO**2 * big)
+    a = 1.0 / np.sqrt(np.where(ok, small, 1.0))
+    b = 1.0 / np.sqrt(np.where(ok, big, 1.0))
+    psi = 0.5 * np.arctan2(2.0 * q, p - r)  # direction of the larger eigenvalue: the minor axis
+    e2 = np.stack([np.cos(psi), np.sin(psi)], axis=1)
+    e1 = np.stack([-e2[:, 1], e2[:, 0]], axis=1)
+    return np.stack([mu, mv], axis=1), a, b, e1, e2, ok
+
+
+def _foot_point(U: np.ndarray, V: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest point ``(x, y)`` on the ellipse ``x^2 / a^2 + y^2 / b^2 = 1`` to points ``(U, V)``, ``U, V >= 0``.
+
+    The foot point is ``(a^2 U / (t + a^2), b^2 V / (t + b^2))`` with ``t`` the root in ``(-b^2, inf)`` of
+    ``F(t) = (a U / (t + a^2))^2 + (b V / (t + b^2))^2 - 1``, which is convex and decreasing there (Eberly,
+    "Distance from a point to an ellipse"). It lies in ``[b V - b^2, sqrt(a^2 U^2 + b^2 V^2) - b^2]``; solved in
+    ``w = log(t + b^2)``, where the near-pole behaviour of a point on a thin ellipse's major axis is nearly linear,
+    by Newton steps kept inside the bracket (bisection otherwise). ``V`` is floored at ``1e-12 b``: on the major
+    axis itself the root is the pole, and the floor moves the distance by ~1e-12 relative.
+    """
+    V = np.maximum(V, 1e-12 * b)
+    aU, bV = a * U, b * V
+    gap = a * a - b * b
+    lo = np.log(bV)
+    hi = np.log(np.maximum(np.sqrt(aU * aU + bV * bV), bV))
+    w = np.clip(np.log(b * b), lo, hi)  # t = 0: a point on the ellipse
+    for _ in range(FOOT_POINT_ITERATIONS):
+        s = np.exp(w)
+        x1, x2 = aU / (s + gap), bV / s
+        F = x1 * x1 + x2 * x2 - 1.0
+        dF = -2.0 * s * (x1 * x1 / (s + gap) + x2 * x2 / s)  # dF/dw = s dF/ds
+        lo = np.where(F > 0, w, lo)
+        hi = np.where(F > 0, hi, w)
+        step = np.where(dF < 0, -F / np.where(dF < 0, dF, -1.0), 0.0)
+        w_new = w + step
+        inside = (w_new >= lo) & (w_new <= hi)
+        w_new = np.where(inside, w_new, 0.5 * (lo + hi))
+        done = np.abs(w_new - w) <= 1e-14 * np.maximum(1.0, np.abs(w))
+        w = w_new
+        if done.all():
+            break
+    s = np.exp(w)
+    return a * aU / (s + gap), b * bV / s
+
+
+def conic_geometric_residual(
+    cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Signed geometric distance (pixels) of each backbone pixel to the needle circle's image ellipse.
+
+    :func:`conic_residual`'s Sampson distance ``f / |grad f|`` is the distance to first order, which fails where
+    the ellipse is thin (a needle within a few degrees of edge-on): measured at the true pose through drive-02's
+    edge-on turn it read up to 35 px for pixels within 1 px of the ellipse. Here the distance is exact: the
+    closest point ``q`` (:func:`_foot_point`, in the ellipse's own axes), ``r = sign(f(p)) |p - q|`` (the Sampson
+    distance's sign, so the two agree to first order near the curve). Its Jacobian follows from moving the curve
+    along its normal: ``dr / dxi = (df / dxi)(q) / |grad f(q)|`` (``f = x^T C x`` with the same ``C`` and ``dC``
+    as :func:`conic_residual`; the closest point's own motion is tangential and drops out). Poses whose conic is
+    not a real ellipse (the circle crossing the camera's principal plane, or exactly edge-on: a double line) fall
+    back to the Sampson distance, row by row. The circle is the full circle, as for the Sampson distance.
+
+    ``points_px`` ``(M, 2)`` undistorted pixels. Returns ``r (N, M)``, ``J (N, M, 6)`` (None with
+    ``jacobian=False``; ``r`` identical).
+    """
+    T, pts, sc, phi, C, coef = _conic_setup(cam_T_needle, K, radius_m, points_px, jacobian)
+    N, M, n7 = T.shape[0], pts.shape[0], coef.shape[1]
+    m, a, b, e1, e2, ok = _ellipse_frames(C)
+    x = phi[3:5] * 0.5  # (2, M): the centred, scaled pixels
+    d = x[None, :, :] - m[:, :, None]  # (N, 2, M)
+    u = np.einsum("nk,nkm->nm", e1, d)
+    v = np.einsum("nk,nkm->nm", e2, d)
+    fx, fy = _foot_point(np.abs(u), np.abs(v), a[:, None], b[:, None])
+    fx, fy = np.copysign(fx, u), np.copysign(fy, v)
+    qu = m[:, 0:1] + e1[:, 0:1] * fx + e2[:, 0:1] * fy  # (N, M) foot points in the scaled basis
+    qv = m[:, 1:2] + e1[:, 1:2] * fx + e2[:, 1:2] * fy
+    f_p = (coef[:, 0, 0] @ phi)  # (N, M): f at the pixels, for the sign
+    dist = np.sqrt((u - fx) ** 2 + (v - fy) ** 2)
+    r = sc * np.where(f_p < 0, -dist, dist)
+    phi_q = np.stack([qu * qu, 2.0 * qu * qv, qv * qv, 2.0 * qu, 2.0 * qv, np.ones_like(qu)], axis=1)  # (N, 6, M)
+    out = coef.reshape(N, n7 * 3, 6) @ phi_q  # (N, n7 * 3, M): f, g1, g2 (and derivatives) at the foot points
+    out = out.reshape(N, n7, 3, M)
+    fallback = ~ok
+    J = None
+    if jacobian:
+        gn = np.sqrt(out[:, 0, 1] ** 2 + out[:, 0, 2] ** 2)
+        J = np.swapaxes(out[:, 1:, 0] * (sc / np.maximum(gn, 1e-300))[:, None], 1, 2)  # (N, M, 6)
+    if fallback.any():
+        rs, Js = _sampson_residual(T[fallback], K, radius_m, pts, jacobian)
+        r[fallback] = rs
+        if jacobian:
+            J[fallback] = Js
+    return r, J
+
+
+#: :func:`conic_residual` itself, for :func:`conic_geometric_residual`'s fallback rows.
+_sampson_residual = conic_residual
 
 #: ``skew(e_0)``, ``skew(e_1)`` of the unit axes (:func:`conic_residual`'s dh/dxi), read-only.
 _SKEW_E = skew(np.eye(3)[:2])

@@ -177,6 +177,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         robust=args.robust,
         spread_scale=args.spread_scale,
         conic_correlation_px=args.conic_correlation_px,
+        conic_distance=args.conic_distance,
     )
     print(f"wrote {out}")
     return 0
@@ -360,7 +361,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     outcome = run_batch(
         args.runs, args.method, args.out, scheduler=args.scheduler, workers=args.workers, on_done=done,
         particles=args.particles, window=args.window, noise_file=args.noise, disable=args.disable, seed=args.seed,
-        overwrite=args.overwrite, spread_scale=args.spread_scale,
+        overwrite=args.overwrite, spread_scale=args.spread_scale, conic_correlation_px=args.conic_correlation_px,
+        conic_distance=args.conic_distance,
     )
     for run, error in outcome.failures.items():
         print(f"error: {run}: {error}" if str(run) not in error else f"error: {error}", file=sys.stderr)
@@ -380,11 +382,22 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
+    _add_conic_model_options(s)
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
                    help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_batch)
+
+
+def _add_conic_model_options(s: argparse.ArgumentParser) -> None:
+    """``--conic-correlation-px`` and ``--conic-distance`` (track and batch)."""
+    s.add_argument("--conic-correlation-px", type=_correlation_px, default=None, metavar="PX",
+                   help="correlation length of the backbone residuals along the arc (0: independent pixels); "
+                        "default: the noise file's, else 0")
+    s.add_argument("--conic-distance", choices=("sampson", "geometric"), default="sampson",
+                   help="backbone pixel to the image conic: first-order Sampson distance (default, the paper's) or "
+                        "the exact geometric distance (better for a needle seen nearly edge-on)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -423,9 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
                    help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none); "
                         "'none' switches all off; default: the noise file's or the built-in defaults")
-    s.add_argument("--conic-correlation-px", type=_correlation_px, default=None, metavar="PX",
-                   help="correlation length of the backbone residuals along the arc (0: independent pixels); "
-                        "default: the noise file's, else 0")
+    _add_conic_model_options(s)
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
                    help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")

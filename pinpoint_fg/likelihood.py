@@ -47,6 +47,9 @@ from factors.robust import RobustLoss
 from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
 
+#: The backbone residual's distances (:attr:`MeasurementModel.conic_distance`).
+CONIC_DISTANCES = ("sampson", "geometric")
+
 #: Names accepted by ``--disable`` and what they switch off.
 SWITCH_NAMES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
 
@@ -118,6 +121,13 @@ class MeasurementModel:
     """Enabled terms."""
     min_depth_m: float = 0.003
     """Needle centres closer than this (or behind the camera) are penalised."""
+    conic_distance: str = "sampson"
+    """Backbone pixel to image conic: "sampson" (first-order distance, the paper's) or "geometric" (exact;
+    :func:`factors.residuals.conic_geometric_residual`)."""
+
+    def __post_init__(self) -> None:
+        if self.conic_distance not in CONIC_DISTANCES:
+            raise ValueError(f"conic_distance must be one of {', '.join(CONIC_DISTANCES)}, got {self.conic_distance!r}")
 
 
 @dataclass(frozen=True)
@@ -192,7 +202,8 @@ class FrameLikelihood:
         if name == "tail":
             return res.keypoint_residual(T, self._K, self._tail, data)
         if name == "conic":
-            return res.conic_residual(T, self._K, self.model.needle.radius_m, data, jacobian=jacobian)
+            fn = res.conic_geometric_residual if self.model.conic_distance == "geometric" else res.conic_residual
+            return fn(T, self._K, self.model.needle.radius_m, data, jacobian=jacobian)
         if name == "grasp_position":
             return res.grasp_position_residual(T, self._grasp, data)
         return res.grasp_perpendicular_residual(T, self._tgrasp, data)
@@ -361,11 +372,13 @@ class FrameLikelihood:
                 if rl.active:
                     pixel = rl.gtsam_model(gtsam.noiseModel.Isotropic.Sigma(1, float(n.sigma[0])))
                     out.extend(conic_pixel_factors(key, cam, nd.radius_m, pts, pixel, bias=float(n.mean[0]),
-                                                   whitening=self.arc_whitening))
+                                                   whitening=self.arc_whitening,
+                                                   distance=self.model.conic_distance))
                 else:
                     out.append(ConicFactor(key, cam, nd.radius_m, pts,
                                            gtsam.noiseModel.Isotropic.Sigma(len(pts), float(n.sigma[0])),
-                                           bias=float(n.mean[0]), whitening=self.arc_whitening))
+                                           bias=float(n.mean[0]), whitening=self.arc_whitening,
+                                           distance=self.model.conic_distance))
             elif name == "grasp_position":
                 out.append(GraspPositionFactor(key, nd.grasp_m, np.asarray(data) + n.mean,
                                                rl.gtsam_model(n.gtsam_model())))

@@ -31,7 +31,7 @@ from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.particles import MAX_PARTICLES
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.io.spread_scale import SpreadScale, scaled_cov_xi, settings_entry
-from pinpoint_fg.likelihood import SWITCH_NAMES, Switches
+from pinpoint_fg.likelihood import CONIC_DISTANCES, SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.offload import Offload, bimodality_verdict, to_frame_estimate  # noqa: F401 - track's public names
 from pinpoint_fg.posterior.summary import posterior_columns
@@ -94,8 +94,11 @@ def make_tracker(method: str, config: TrackerConfig) -> Tracker:
 
 def tracker_config(recording: Recording, method: str, particles: int | None = None, window: int = 1,
                    noise: NoiseConfig | None = None, disable: tuple[str, ...] | list[str] = (),
-                   seed: int = 0) -> TrackerConfig:
-    """A TrackerConfig for a recording (camera, needle) with the method's default particle count."""
+                   seed: int = 0, conic_distance: str = "sampson") -> TrackerConfig:
+    """A TrackerConfig for a recording (camera, needle) with the method's default particle count.
+
+    ``conic_distance``: the backbone residual, "sampson" (default) or "geometric"
+    (:attr:`~pinpoint_fg.likelihood.MeasurementModel.conic_distance`)."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     n = DEFAULT_PARTICLES[method] if particles is None else _whole("particles", particles, 1)
@@ -104,6 +107,7 @@ def tracker_config(recording: Recording, method: str, particles: int | None = No
     return TrackerConfig(
         camera=recording.info.camera, needle=recording.info.needle, noise=noise or NoiseConfig(),
         switches=Switches.from_disabled(_disabled(disable)), particles=n, window=window, seed=seed,
+        conic_distance=conic_distance,
     )
 
 
@@ -148,6 +152,7 @@ def track_recording(
     blas_threads: int | None = 1,
     spread_scale: str | Path | None = None,
     conic_correlation_px: float | None = None,
+    conic_distance: str = "sampson",
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
@@ -159,7 +164,8 @@ def track_recording(
     uses 1; the worker is spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults; ``conic_correlation_px`` likewise the backbone residuals' correlation length
-    along the arc (:mod:`factors.conic_correlation`; 0: independent pixels, the default).
+    along the arc (:mod:`factors.conic_correlation`; 0: independent pixels, the default). ``conic_distance``:
+    "sampson" (default) or "geometric" (:attr:`~pinpoint_fg.likelihood.MeasurementModel.conic_distance`).
     ``spread_scale``: a file of ``calibrate-spread`` (:mod:`pinpoint_fg.io.spread_scale`); the q95
     columns written are the tracker's bounds times the method's factors, the covariances of ``modes.csv``
     are scaled to match (:func:`~pinpoint_fg.io.spread_scale.scaled_cov_xi`: rotation block ``kappa_rot^2``,
@@ -190,6 +196,8 @@ def track_recording(
             path_argument(name, value)
     if conic_correlation_px is not None:
         NoiseConfig(conic_correlation_px=conic_correlation_px)  # refused here (ValueError), before any output
+    if conic_distance not in CONIC_DISTANCES:
+        raise ValueError(f"conic_distance must be one of {', '.join(CONIC_DISTANCES)}, got {conic_distance!r}")
     if robust is not None and not isinstance(robust, Mapping):
         raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
                          f"SPEC), got {type(robust).__name__}")  # a str was "dictionary update sequence element #0"
@@ -201,7 +209,7 @@ def track_recording(
     failed = True
     try:
         out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
-                     robust, blas_threads, offload, scale, conic_correlation_px)
+                     robust, blas_threads, offload, scale, conic_correlation_px, conic_distance)
         failed = False
     finally:
         offload.close(failed)
@@ -226,7 +234,8 @@ def _first_line(exc: Exception) -> str:
 def _track(run: str | Path, method: str, out: Path, particles: int | None, window: int,
            noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
            max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
-           offload: Offload, scale: dict | None = None, conic_correlation_px: float | None = None) -> Path:
+           offload: Offload, scale: dict | None = None, conic_correlation_px: float | None = None,
+           conic_distance: str = "sampson") -> Path:
     """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started.
 
     ``scale``: :func:`~pinpoint_fg.io.spread_scale.settings_entry` of the spread scale, or None.
@@ -239,7 +248,7 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
         noise = (noise or NoiseConfig()).with_robust(robust)
     if conic_correlation_px is not None:
         noise = (noise or NoiseConfig()).with_conic_correlation(conic_correlation_px)
-    config = tracker_config(recording, method, particles, window, noise, disable, seed)
+    config = tracker_config(recording, method, particles, window, noise, disable, seed, conic_distance)
     tracker = make_tracker(method, config)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]
     if not frames:

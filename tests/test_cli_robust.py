@@ -39,6 +39,34 @@ def test_track_robust_flag_and_mask_spurs(tmp_path: Path, capsys: pytest.Capture
     assert exc.value.code == 2
 
 
+def test_track_conic_distance_flag(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    run = tmp_path / "run"
+    assert main(["simulate", "--scenario", "normal", "--frames", "6", "--seed", "3", "--out", str(run)]) == 0
+    for method, particles in (("map", "1"), ("svn", "12")):
+        out = tmp_path / method
+        assert main(["track", str(run), "--method", method, "--particles", particles, "--conic-distance", "geometric",
+                     "--out", str(out)]) == 0
+        assert json.loads((out / "result.json").read_text())["settings"]["conic_distance"] == "geometric"
+        assert np.all(np.isfinite(read_result(out).cam_T_needle))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["track", str(run), "--conic-distance", "euclid", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2 and "conic-distance" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+    # evaluate scores it with the model it was tracked with; a hand-edited value is one line, exit 2
+    assert main(["evaluate", str(tmp_path / "map"), "--recording", str(run), "--out", str(tmp_path / "ev")]) == 0
+    info = tmp_path / "map" / "result.json"
+    doc = json.loads(info.read_text())
+    for key, bad in (("conic_distance", "euclid"), ("conic_correlation_px", -3)):
+        edited = json.loads(json.dumps(doc))
+        edited["settings"][key] = bad
+        info.write_text(json.dumps(edited))
+        capsys.readouterr()
+        assert main(["evaluate", str(tmp_path / "map"), "--recording", str(run), "--out", str(tmp_path / "ev2")]) == 2
+        err = capsys.readouterr().err
+        assert f"settings.{key}" in err and "Traceback" not in err
+
+
 def test_track_conic_correlation_flag(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``--conic-correlation-px`` reaches every tracker's likelihood (recorded in result.json; it changes the
     poses, the batched path's SVN and the GTSAM path's MAP alike); bad lengths exit 2 with one line."""

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from factors.conic_correlation import MIN_STEP_PX, ArcWhitening, arc_order
-from factors.conventions import matrix_to_pose3
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.gtsam_factors import ConicFactor, conic_pixel_factors
 from factors.lie import se3_exp
@@ -16,6 +15,7 @@ from factors.robust import NO_LOSS
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation
+from tests.likelihood_checks import assert_equals_its_gtsam_factors
 
 CAM = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080)
 NEEDLE = NeedleModel()
@@ -152,17 +152,8 @@ def test_likelihood_with_correlation_equals_its_gtsam_factors(robust: bool) -> N
     lik = FrameLikelihood(_obs(T, rng), MeasurementModel(CAM, NEEDLE, noise, Switches()))
     assert lik.arc_whitening is not None
     poses = T @ se3_exp(rng.normal(size=(5, 6)) * np.r_[[0.03] * 3, [5e-4] * 3])
-    nll, grad, H = lik.gauss_newton(poses)
-    factors = lik.gtsam_factors(0)
+    factors = assert_equals_its_gtsam_factors(lik, poses)
     assert len(factors) == (1 + 60 + 2 if robust else 1 + 1 + 2)
-    for i in range(5):
-        v = gtsam.Values()
-        v.insert(0, matrix_to_pose3(poses[i]))
-        np.testing.assert_allclose(sum(f.error(v) for f in factors), nll[i], rtol=1e-10)
-        A_b = [f.linearize(v).jacobian() for f in factors]
-        np.testing.assert_allclose(sum(A.T @ A for A, _ in A_b), H[i], rtol=1e-9, atol=1e-9 * np.abs(H[i]).max())
-        np.testing.assert_allclose(-sum(A.T @ b for A, b in A_b), grad[i], rtol=1e-9,
-                                   atol=1e-9 * np.abs(grad[i]).max())
 
 
 def test_correlation_discounts_a_smooth_offset_but_not_a_kink() -> None:

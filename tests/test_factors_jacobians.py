@@ -45,12 +45,13 @@ def _unary_factor(name: str, T: np.ndarray, rng: np.random.Generator):
         X = NEEDLE.tip_m
         z = CAM.project(R @ X + t) + rng.normal(size=2) * 3
         return KeypointFactor(0, CAM, X, z, _noise(2))
-    if name in ("conic", "conic_correlated"):
+    if name in ("conic", "conic_correlated", "conic_geometric"):
         P = NEEDLE.point(rng.uniform(0, 2 * np.pi, 15))
         px = CAM.project(P @ R.T + t) + rng.normal(size=(15, 2)) * 1.5
         # correlated: the along-arc innovations, the same linear map on the residuals and their Jacobian rows
         whitening = ArcWhitening.from_points(px, 20.0) if name == "conic_correlated" else None
-        return ConicFactor(0, CAM, NEEDLE.radius_m, px, _noise(15), whitening=whitening)
+        distance = "geometric" if name == "conic_geometric" else "sampson"
+        return ConicFactor(0, CAM, NEEDLE.radius_m, px, _noise(15), whitening=whitening, distance=distance)
     if name == "grasp_position":
         return GraspPositionFactor(0, NEEDLE.grasp_m, R @ NEEDLE.grasp_m + t + rng.normal(size=3) * 1e-3, _noise(3))
     if name == "grasp_perpendicular":
@@ -76,11 +77,12 @@ def _check(J: np.ndarray, Jn: np.ndarray, err: np.ndarray, label: str) -> tuple[
 
 
 @pytest.mark.parametrize("kind", KINDS)
-@pytest.mark.parametrize("name", ["keypoint", "conic", "conic_correlated", "grasp_position", "grasp_perpendicular",
-                                  "pose_prior"])
+@pytest.mark.parametrize("name", ["keypoint", "conic", "conic_correlated", "conic_geometric", "grasp_position",
+                                  "grasp_perpendicular", "pose_prior"])
 def test_unary_factor_jacobians(name: str, kind: str) -> None:
-    # the correlated conic on the plain conic's poses and pixels
-    rng = np.random.default_rng(zlib.crc32(f"{name.removesuffix('_correlated')}-{kind}".encode()))
+    # the correlated and geometric conics on the plain conic's poses and pixels
+    base = "conic" if name.startswith("conic") else name
+    rng = np.random.default_rng(zlib.crc32(f"{base}-{kind}".encode()))
     poses = sample_poses(kind, PER_KIND, rng)
     n_acc = n_all = 0
     for i, T in enumerate(poses):

@@ -69,7 +69,7 @@ from pinpoint_fg.io.recording.schema import Recording, json_shown
 from pinpoint_fg.io.result.reader import check_tracked_on, expand_result_dirs, read_result, recording_of
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
-from pinpoint_fg.likelihood import MeasurementModel, Switches
+from pinpoint_fg.likelihood import CONIC_DISTANCES, MeasurementModel, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.posterior.bimodality import assess_bimodality, systematic_resample, tangent_at_map
 
@@ -170,6 +170,23 @@ def _noise_of(res: Result) -> tuple[NoiseConfig, str | None]:
         raise InputError(f'key "settings.noise_file": the noise file it was tracked with, {p}, is not found',
                          file=where)
     return NoiseConfig.load(p), str(p.resolve())
+
+
+def _conic_model_of(res: Result, noise: NoiseConfig) -> tuple[NoiseConfig, str]:
+    """The noise with the result's ``settings.conic_correlation_px`` (when recorded) and its
+    ``settings.conic_distance`` (default "sampson": results tracked before either existed)."""
+    settings, where = _settings_of(res), res.root / "result.json"
+    ell = settings.get("conic_correlation_px")
+    if ell is not None:
+        try:
+            noise = noise.with_conic_correlation(ell)
+        except ValueError as exc:
+            raise InputError(f'key "settings.conic_correlation_px": {exc}', file=where) from None
+    distance = settings.get("conic_distance", "sampson")
+    if distance not in CONIC_DISTANCES:
+        raise InputError(f'key "settings.conic_distance": must be one of {", ".join(CONIC_DISTANCES)}, got '
+                         f"{json_shown(distance)}", file=where)
+    return noise, distance
 
 
 # --------------------------------------------------------------------------------------------
@@ -769,10 +786,12 @@ def evaluate_results(
         kappas.append(recorded)
         rec = _recording_for(res, given, cache)
         noise, noise_key = _noise_of(res)
+        noise, distance = _conic_model_of(res, noise)
         disabled = _disabled_of(res)
         sw = Switches.from_disabled(disabled)
-        model = MeasurementModel(rec.info.camera, rec.info.needle, noise, sw)
-        key = (str(rec.root.resolve()), noise_key, tuple(d for d in disabled if d != "motion"))
+        model = MeasurementModel(rec.info.camera, rec.info.needle, noise, sw, conic_distance=distance)
+        key = (str(rec.root.resolve()), noise_key, noise.conic_correlation_px, distance,
+               tuple(d for d in disabled if d != "motion"))
         loaded.append((res, rec, model, key))
     _refuse_namesakes([(res, rec) for res, rec, _, _ in loaded])
 

@@ -71,7 +71,8 @@ class TrackerConfig(MeasurementModel):
     @property
     def model(self) -> MeasurementModel:
         """The measurement model every frame's likelihood uses (the measurement fields alone)."""
-        return MeasurementModel(self.camera, self.needle, self.noise, self.switches, self.min_depth_m)
+        return MeasurementModel(self.camera, self.needle, self.noise, self.switches, self.min_depth_m,
+                                self.conic_distance)
 
 
 class Tracker(abc.ABC):
@@ -100,7 +101,7 @@ class Tracker(abc.ABC):
         k = c.kinematics
         return {"method": self.method, "particles": c.particles, "window": c.window, "seed": c.seed,
                 "disabled": list(c.switches.disabled()), "robust": format_robust(c.noise.robust),
-                "conic_correlation_px": c.noise.conic_correlation_px,
+                "conic_correlation_px": c.noise.conic_correlation_px, "conic_distance": c.conic_distance,
                 "kinematics_check": {"reference_dt_s": k.reference_dt_s, "jump_quantile": k.jump_quantile,
                                      "max_test_gap_s": k.max_test_gap_s, "max_scale": k.max_scale,
                                      "correct_registration": k.correct_registration,

@@ -15,11 +15,14 @@ Usage (one thread)::
     .venv/bin/python scripts/conic_weight.py correlation RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py sweep C svn,map RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py correlated ELL svn,map RUN [RUN ...]
+    .venv/bin/python scripts/conic_weight.py distance {sampson,geometric} svn,map RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py terms RUN RESULT_DIR FIRST LAST STEP
     .venv/bin/python scripts/conic_weight.py trail C RUN FIRST LAST
 
 ``correlated`` is ``sweep`` with the default noise but the backbone residuals correlated along the arc with length
 ``ELL`` px (``NoiseConfig.conic_correlation_px``, :mod:`factors.conic_correlation`; 0 = independent pixels).
+
+``distance`` is ``sweep`` with the default noise and the backbone distance given (``--conic-distance``).
 
 ``trail`` tracks RUN with SVN at weight ``1 / c^2`` and prints, for frames FIRST..LAST-1, how far (nats of
 log-posterior) the best particle within 2 mm / 10 deg of the truth trails the best particle overall, and
@@ -79,12 +82,15 @@ def correlation(run: Path) -> None:
           f"integrated length (lags <= {LAGS}) {tau:.1f} px")
 
 
-def sweep(c: float, methods: list[str], run: Path, noise: NoiseConfig | None = None, label: str = "c") -> None:
-    """``noise``: instead of :func:`conic_scaled`, this noise (``c`` is then only printed, as ``label=c``)."""
+def sweep(c: float, methods: list[str], run: Path, noise: NoiseConfig | None = None, label: str = "c",
+          distance: str = "sampson") -> None:
+    """``noise``: instead of :func:`conic_scaled`, this noise (``c`` is then only printed, as ``label=c``);
+    ``distance``: the backbone residual's (``MeasurementModel.conic_distance``)."""
     rec = read_recording(run)
     for method in methods:
         tracker = make_tracker(method, tracker_config(rec, method, noise=conic_scaled(c) if noise is None else noise,
-                                                      disable=suggested_disable(run), seed=0))
+                                                      disable=suggested_disable(run), seed=0,
+                                                      conic_distance=distance))
         et, er, kept, cov_t, cov_r = [], [], [], [], []
         for frame in rec.frames:
             est = tracker.step(observe_frame(rec, frame))
@@ -139,6 +145,9 @@ if __name__ == "__main__":
     if len(sys.argv) >= 3 and sys.argv[1] == "correlation":
         for path in sys.argv[2:]:
             correlation(Path(path))
+    elif len(sys.argv) >= 5 and sys.argv[1] == "distance":
+        for path in sys.argv[4:]:
+            sweep(0.0, sys.argv[3].split(","), Path(path), NoiseConfig(), sys.argv[2], distance=sys.argv[2])
     elif len(sys.argv) >= 5 and sys.argv[1] == "correlated":
         for path in sys.argv[4:]:
             ell = float(sys.argv[2])

@@ -188,7 +188,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_file
 
     prepare_output_file(args.out, args.overwrite, "noise file", inputs=args.runs)
-    noise = calibrate_runs(args.runs, fit_correlation=args.conic_correlation)
+    noise = calibrate_runs(args.runs, fit_correlation=args.conic_correlation, conic_distance=args.conic_distance)
     noise.save(args.out)
     print(format_table(noise))
     print(f"wrote {args.out}")
@@ -450,6 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--conic-correlation", action="store_true",
                    help="also fit the backbone residuals' correlation length along the arc (default: independent "
                         "pixels, the paper's model)")
+    s.add_argument("--conic-distance", choices=("sampson", "geometric"), default="sampson",
+                   help="the backbone residual to calibrate: the one you track with (default: sampson)")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_calibrate)
 

@@ -191,3 +191,28 @@ def test_cli_calibrate_conic_correlation_writes_the_fitted_length(tmp_path: Path
     assert main(["calibrate", str(path), "--out", str(tmp_path / "n.json")]) == 0
     assert NoiseConfig.load(tmp_path / "n.json").conic_correlation_px == 0.0
     assert "Conic correlation length" not in capsys.readouterr().out
+
+
+def test_calibrate_with_the_geometric_distance(calib: tuple[SimRun, Path], tmp_path: Path) -> None:
+    """``--conic-distance geometric`` calibrates the backbone residual the tracker will use: the samples are the
+    exact distances at the truth, frame by frame; the other residual types are unchanged."""
+    from factors.residuals import conic_geometric_residual
+    from pinpoint_fg.observe import observe_frame
+
+    _, path = calib
+    rec = read_recording(path)
+    frames: list = []
+    r = residuals_at_truth(rec, frames, conic_distance="geometric")
+    plain = residuals_at_truth(rec)
+    assert frames and r["conic"].shape == plain["conic"].shape
+    for k in ("tip", "tail", "grasp_position", "grasp_perpendicular", "motion"):
+        np.testing.assert_array_equal(r[k], plain[k])
+    masked = [f for f in rec.frames if observe_frame(rec, f).backbone_px is not None]
+    points, got = frames[0]
+    want = conic_geometric_residual(masked[0].cam_T_needle_gt, rec.info.camera.K, rec.info.needle.radius_m,
+                                    points, jacobian=False)[0][0]
+    np.testing.assert_array_equal(got, want)
+    assert main(["calibrate", str(path), "--conic-distance", "geometric", "--out", str(tmp_path / "g.json")]) == 0
+    assert NoiseConfig.load(tmp_path / "g.json")["conic"].sigma[0] != calibrate_runs([path])["conic"].sigma[0]
+    with pytest.raises(ValueError, match="conic_distance"):
+        residuals_at_truth(rec, conic_distance="euclid")

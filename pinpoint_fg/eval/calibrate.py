@@ -48,6 +48,7 @@ from factors.conic_correlation import arc_order
 from pinpoint_fg.errors import InputError, path_list, refuse_repeated
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import FrameRecord, Recording
+from pinpoint_fg.likelihood import CONIC_DISTANCES
 from pinpoint_fg.noise import RESIDUAL_DIMS, NoiseConfig, ResidualNoise
 from pinpoint_fg.observe import observe_frame
 
@@ -70,17 +71,23 @@ def _in_front(recording: Recording, rec: FrameRecord, T: np.ndarray, points: lis
                              row=recording.row_of(rec), column="gt_z_m")
 
 
-def residuals_at_truth(recording: Recording, conic_frames: list | None = None) -> dict[str, np.ndarray]:
+def residuals_at_truth(recording: Recording, conic_frames: list | None = None, conic_distance: str = "sampson"
+                       ) -> dict[str, np.ndarray]:
     """Every residual type evaluated at the ground-truth poses of one run.
 
     Returns ``{type: (n, d) array}`` for the types of :data:`pinpoint_fg.noise.RESIDUAL_DIMS`
     (``n`` may be 0). Frames without ground truth contribute nothing. ``conic_frames``: a list that
-    receives each masked frame's ``(backbone pixels (M, 2), residuals (M,))``. Raises
+    receives each masked frame's ``(backbone pixels (M, 2), residuals (M,))``. ``conic_distance``: the backbone
+    residual's, "sampson" (:func:`factors.residuals.conic_residual`) or "geometric"
+    (:func:`factors.residuals.conic_geometric_residual`): calibrate with the one you track with. Raises
     :class:`InputError` naming the run when no frame has ground truth, and naming the row when a frame's
     ground truth puts a needle point its image shows behind the camera.
     """
     if not recording.has_ground_truth:
         raise InputError("no frame has ground truth (gt_* columns): cannot calibrate", file=recording.root)
+    if conic_distance not in CONIC_DISTANCES:
+        raise ValueError(f"conic_distance must be one of {', '.join(CONIC_DISTANCES)}, got {conic_distance!r}")
+    conic = res.conic_geometric_residual if conic_distance == "geometric" else res.conic_residual
     cam, nd = recording.info.camera, recording.info.needle
     K = cam.K
     out: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
@@ -98,7 +105,7 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None) -
         if obs.tail_px is not None:
             out["tail"].append(res.keypoint_residual(T, K, nd.tail_m, obs.tail_px)[0])
         if obs.backbone_px is not None:
-            r = res.conic_residual(T, K, nd.radius_m, obs.backbone_px, jacobian=False)[0].reshape(-1)
+            r = conic(T, K, nd.radius_m, obs.backbone_px, jacobian=False)[0].reshape(-1)
             out["conic"].append(r[:, None])
             if conic_frames is not None:
                 conic_frames.append((obs.backbone_px, r))
@@ -197,9 +204,10 @@ def fit_conic_correlation(frames: list[tuple[np.ndarray, np.ndarray]], noise: Re
     return float(-step / np.log(a))
 
 
-def calibrate_runs(runs: list[Path], fit_correlation: bool = False) -> NoiseConfig:
+def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distance: str = "sampson") -> NoiseConfig:
     """Calibrated noise of every residual type from the ground truth of ``runs`` (module docstring); with
-    ``fit_correlation`` also the backbone residuals' correlation length along the arc.
+    ``fit_correlation`` also the backbone residuals' correlation length along the arc; ``conic_distance``: the
+    backbone residual's (:func:`residuals_at_truth`).
 
     Raises :class:`InputError` naming the run when a run cannot be read or has no ground truth, or is given twice.
     """
@@ -210,7 +218,7 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False) -> NoiseConf
     pooled: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
     conic_frames: list[tuple[np.ndarray, np.ndarray]] = []
     for run in runs:
-        samples = residuals_at_truth(read_recording(run), conic_frames if fit_correlation else None)
+        samples = residuals_at_truth(read_recording(run), conic_frames if fit_correlation else None, conic_distance)
         for k, v in samples.items():
             pooled[k].append(v)
     noise = noise_from_residuals({k: np.concatenate(v, axis=0) for k, v in pooled.items()})

@@ -163,11 +163,19 @@ class PinholeCamera:
         )
 
 
+#: Smallest needle radius accepted, metres. Surgical needles run from ~1 mm (ophthalmic) up; a radius below
+#: 0.1 mm is a unit mistake (mm or um typed as m), and tracking it puts the needle at a depth of nanometres.
+MIN_NEEDLE_RADIUS_M = 1e-4
+#: Thinnest wire accepted, metres (the finest suture needles' wire is ~30 um).
+MIN_WIRE_DIAMETER_M = 1e-6
+
+
 @dataclass(frozen=True)
 class NeedleModel:
     """A circular suture needle: an arc of the needle-frame circle of radius ``radius_m``.
 
-    Physically possible only (``ValueError`` otherwise): finite numbers, positive radius and wire, an arc of
+    Physically possible only (``ValueError`` otherwise): finite numbers, a radius of at least
+    :data:`MIN_NEEDLE_RADIUS_M` and a wire of at least :data:`MIN_WIRE_DIAMETER_M`, an arc of
     non-zero length shorter than a full circle, the grasp angle on the arc (from the tail towards the tip,
     mod 2 pi; its ends included) and a wire thinner than twice the radius.
     """
@@ -190,6 +198,9 @@ class NeedleModel:
         )
         for name in ("tail_angle_rad", "tip_angle_rad", "grasp_angle_rad"):
             object.__setattr__(self, name, _finite_float(name, getattr(self, name)))
+        for name, least in (("radius_m", MIN_NEEDLE_RADIUS_M), ("wire_diameter_m", MIN_WIRE_DIAMETER_M)):
+            if getattr(self, name) < least:
+                raise ValueError(f"{name} {getattr(self, name):.6g} is below {least:g} m (a unit mistake?)")
         arc = abs(self.tip_angle_rad - self.tail_angle_rad)
         if arc < 1e-9:
             raise ValueError("tip_angle_rad and tail_angle_rad must differ (the arc has zero length)")

@@ -124,6 +124,7 @@ def _probability(text: str) -> float:
 def _cmd_validate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.recording.reader import summarize_recording
     from pinpoint_fg.io.recording.validator import validate_run
+    from pinpoint_fg.observe import outside_image_note
 
     recording, errors = validate_run(args.run)
     if errors:
@@ -132,6 +133,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         print(f"{args.run}: INVALID ({len(errors)} error(s))", file=sys.stderr)
         return 2
     print(summarize_recording(recording))
+    note = outside_image_note(recording)
+    if note is not None:  # valid, but the trackers will ignore those keypoints
+        print(note, file=sys.stderr)
     return 0
 
 

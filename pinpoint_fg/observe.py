@@ -241,16 +241,54 @@ def backbone_from_mask(
     return camera.undistort_px(pts_px)
 
 
+#: A keypoint cell more than this many pixels outside the image is not a detection (:func:`observe_frame`).
+KEYPOINT_OUTSIDE_PX = 10.0
+
+
+def detected_in_image(camera: PinholeCamera, px: np.ndarray | None) -> bool:
+    """Whether a recorded keypoint ``px (2,)`` (distorted pixels) can be a detection: inside the image, give or
+    take :data:`KEYPOINT_OUTSIDE_PX` (a detector's sub-pixel output at the border); False for None."""
+    if px is None:
+        return False
+    return bool(camera.in_image(np.asarray(px, dtype=float), margin_px=-KEYPOINT_OUTSIDE_PX))
+
+
+def keypoints_outside_image(recording: Recording, frames: list[FrameRecord] | None = None) -> list[tuple[int, str]]:
+    """``(frame, "tip" | "tail")`` of every keypoint :func:`observe_frame` ignores as outside the image."""
+    camera = recording.info.camera
+    return [(int(rec.frame), name) for rec in (recording.frames if frames is None else frames)
+            for name, px in (("tip", rec.tip_px), ("tail", rec.tail_px))
+            if px is not None and not detected_in_image(camera, px)]
+
+
+def outside_image_note(recording: Recording, frames: list[FrameRecord] | None = None) -> str | None:
+    """One line for the user when :func:`keypoints_outside_image` finds any (None otherwise)."""
+    outside = keypoints_outside_image(recording, frames)
+    if not outside:
+        return None
+    camera = recording.info.camera
+    frame, name = outside[0]
+    rec = next(r for r in recording.frames if r.frame == frame)
+    u, v = (rec.tip_px if name == "tip" else rec.tail_px)  # type: ignore[misc]
+    return (f"note: {Path(recording.root) / 'frames.csv'}: {len(outside)} tip/tail keypoint(s) more than "
+            f"{KEYPOINT_OUTSIDE_PX:g} px outside the {camera.width} x {camera.height} image are ignored as not "
+            f"detected (first: frame {frame}, {name} at ({u:g}, {v:g}) px; wrong image size or pixel scale?)")
+
+
 def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200) -> Observation:
     """The tracker's input for one recorded frame ``rec`` of ``recording``.
 
-    Tip/tail keypoints are undistorted; the backbone comes from the frame's mask via
+    Tip/tail keypoints are undistorted; one that lies outside the image (by more than
+    :data:`KEYPOINT_OUTSIDE_PX`) is taken as not detected: no detector reports a point it cannot
+    see, the distortion model means nothing there, and one such cell (a keypoint in another
+    image's pixel scale, a sentinel like -5000) turned both SVN's and MAP's pose by 140 deg for ten
+    frames. :func:`outside_image_note` tells the user. The backbone comes from the frame's mask via
     :func:`backbone_from_mask` (None when the frame has no mask or the mask holds no
     needle); ``cam_T_grasper`` is passed through.
     """
     camera: PinholeCamera = recording.info.camera
-    tip = None if rec.tip_px is None else camera.undistort_px(np.asarray(rec.tip_px, float)[None, :])[0]
-    tail = None if rec.tail_px is None else camera.undistort_px(np.asarray(rec.tail_px, float)[None, :])[0]
+    tip, tail = (camera.undistort_px(np.asarray(px, float)[None, :])[0] if detected_in_image(camera, px) else None
+                 for px in (rec.tip_px, rec.tail_px))
     backbone = None
     if rec.mask is not None:
         mask = recording.load_mask(rec)

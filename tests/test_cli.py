@@ -176,3 +176,41 @@ def test_output_to_a_closed_pipe_is_not_a_traceback(runs: dict[str, Path]) -> No
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 0
     assert "Traceback" not in err and "BrokenPipeError" not in err
+
+
+def test_keypoints_outside_the_image_are_ignored_with_a_note(runs: dict[str, Path], tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """Tip cells at u = -5000 (valid format: within 10 image sizes) give the poses of the same run with those
+    cells empty, and `validate` / `track` say so in one note line each."""
+    import csv
+    import shutil
+
+    def edited(name: str, value: str) -> Path:
+        run = tmp_path / name
+        shutil.copytree(runs["normal"], run)
+        rows = list(csv.reader((run / "frames.csv").open()))
+        u, v = rows[0].index("tip_u_px"), rows[0].index("tip_v_px")
+        changed = 0
+        for row in rows[1:]:
+            if row[u] and changed < 4:
+                row[u], row[v] = (value, row[v]) if value else ("", "")
+                changed += 1
+        assert changed == 4
+        with (run / "frames.csv").open("w", newline="") as f:
+            csv.writer(f).writerows(rows)
+        return run
+
+    far, empty = edited("far", "-5000"), edited("empty", "")
+    capsys.readouterr()
+    assert main(["validate", str(far)]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(notes) == 1 and notes[0].startswith("note: ") and "4 tip/tail keypoint(s)" in notes[0]
+    poses = {}
+    for run in (far, empty):
+        out = tmp_path / f"out-{run.name}"
+        assert main(["track", str(run), "--method", "map", "--out", str(out)]) == 0
+        err = capsys.readouterr().err
+        assert ("outside the" in err) == (run is far)
+        rows = list(csv.DictReader((out / "estimates.csv").open()))
+        poses[run.name] = [[r[k] for k in ("x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")] for r in rows]
+    assert poses["far"] == poses["empty"]

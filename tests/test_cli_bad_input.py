@@ -891,7 +891,8 @@ def test_out_that_is_an_importers_or_pools_input_is_refused(command: str, run: P
     assert sorted(str(p.relative_to(source)) for p in source.rglob("*")) == before
 
 
-@pytest.mark.parametrize(("key", "value"), [("radius_m", 1e308), ("wire_diameter_m", 2.0), ("tip_angle_rad", -1e9)])
+@pytest.mark.parametrize(("key", "value"), [("radius_m", 1e308), ("wire_diameter_m", 2.0), ("tip_angle_rad", -1e9),
+                                            ("radius_m", 1e-33)])
 def test_import_bag_names_the_needle_file_for_a_needle_out_of_range(key: str, value: float, run: Path, tmp_path: Path,
                                                                     capsys: pytest.CaptureFixture[str]) -> None:
     """A NEEDLE.json with ``radius_m: 1e308`` was blamed on the run being written ("OUT/recording.json: column

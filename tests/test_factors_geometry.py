@@ -49,6 +49,8 @@ def test_needle_points_and_tangents() -> None:
     ({"grasp_angle_rad": -0.5}, "not on the arc"),                            # behind the tail
     ({"tail_angle_rad": 0.0, "tip_angle_rad": -2.0, "grasp_angle_rad": 1.0}, "not on the arc"),
     ({"wire_diameter_m": 0.009}, "twice radius_m"),
+    ({"radius_m": 4.5e-6, "wire_diameter_m": 4e-7}, "radius_m 4.5e-06 is below"),  # um typed as m
+    ({"wire_diameter_m": 4e-10}, "wire_diameter_m 4e-10 is below"),
 ])
 def test_impossible_needles_are_refused(fields: dict, problem: str) -> None:
     with pytest.raises(ValueError, match=problem):

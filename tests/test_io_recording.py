@@ -427,6 +427,9 @@ def test_missing_json_key(run, key: str, edit) -> None:
         ("needle", lambda d: d["needle"].update(grasp_angle_rad=-1.0), "not on the arc"),  # were accepted
         ("needle", lambda d: d["needle"].update(tip_angle_rad=6.5), "full circle"),
         ("needle", lambda d: d["needle"].update(wire_diameter_m=0.02), "twice radius_m"),
+        # a unit mistake (um typed as m) put the tracked needle at a depth of nanometres
+        ("needle.radius_m", lambda d: d["needle"].update(radius_m=1e-33), "out of range"),
+        ("needle.wire_diameter_m", lambda d: d["needle"].update(wire_diameter_m=4e-10), "out of range"),
         ("format", lambda d: d.update(format="something-else"), "pinpoint-recording"),
         ("version", lambda d: d.update(version=2), "unsupported"),
         ("name", lambda d: d.update(name=""), "non-empty"),

@@ -171,3 +171,29 @@ def test_observe_frame_and_iter_observations(tmp_path) -> None:
     assert not obs[2].has_image_evidence
     again = observe_frame(recording, recording.frames[0], max_points=50)
     np.testing.assert_array_equal(again.backbone_px, o0.backbone_px)
+
+
+def test_keypoints_outside_the_image_are_not_detections(tmp_path) -> None:
+    """A keypoint cell beyond the image (a sentinel, another image's pixel scale) is taken as not detected:
+    one at u = -5000 turned SVN's and MAP's pose by 140 deg; within KEYPOINT_OUTSIDE_PX of the border it is kept."""
+    from pinpoint_fg.observe import KEYPOINT_OUTSIDE_PX, keypoints_outside_image, outside_image_note
+
+    info = RecordingInfo(name="outside", frame_rate_hz=30.0, camera=CAM, needle=NEEDLE)
+    edge = -0.5 - 0.9 * KEYPOINT_OUTSIDE_PX  # just within the tolerance
+    far = -0.5 - 1.1 * KEYPOINT_OUTSIDE_PX
+    frames = [
+        FrameRecord(frame=0, t_s=0.0, tip_px=np.array([500.0, 500.0]), tail_px=np.array([edge, 300.0])),
+        FrameRecord(frame=1, t_s=1 / 30, tip_px=np.array([-5000.0, 500.0]), tail_px=np.array([600.0, 1079.5 - far])),
+        FrameRecord(frame=2, t_s=2 / 30, tip_px=np.array([700.0, far])),
+    ]
+    recording = read_recording(write_recording(tmp_path / "run", info, frames))
+    obs = list(iter_observations(recording))
+    assert obs[0].tip_px is not None and obs[0].tail_px is not None
+    np.testing.assert_allclose(obs[0].tail_px, CAM.undistort_px(np.array([[edge, 300.0]]))[0])
+    assert obs[1].tip_px is None and obs[1].tail_px is None
+    assert obs[2].tip_px is None
+    assert keypoints_outside_image(recording) == [(1, "tip"), (1, "tail"), (2, "tip")]
+    assert keypoints_outside_image(recording, recording.frames[:1]) == []
+    note = outside_image_note(recording)
+    assert note is not None and "3 tip/tail keypoint(s)" in note and "frame 1, tip at (-5000, 500)" in note
+    assert outside_image_note(recording, recording.frames[:1]) is None

@@ -91,6 +91,7 @@ from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import (
     MAX_ABS_ANGLE_RAD,
     MAX_NEEDLE_M,
+    MIN_NEEDLE_M,
     QUAT_NORM_TOL,
     FrameRecord,
     Recording,
@@ -187,7 +188,8 @@ def read_needle_json(path: str | Path) -> NeedleModel:
     """The needle of ``NEEDLE.json``: the ``needle`` object of recording.json, or a whole recording.json.
 
     Every key of the needle object is required and a finite number within the recording format's bounds
-    (``radius_m`` and ``wire_diameter_m`` in (0, :data:`MAX_NEEDLE_M`], angles within ±:data:`MAX_ABS_ANGLE_RAD`);
+    (``radius_m`` and ``wire_diameter_m`` in [:data:`MIN_NEEDLE_M`, :data:`MAX_NEEDLE_M`], angles within
+    ±:data:`MAX_ABS_ANGLE_RAD`);
     unknown keys are ignored. Errors name the file and the key.
     """
     path = Path(path)
@@ -214,8 +216,8 @@ def read_needle_json(path: str | Path) -> NeedleModel:
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
             raise InputError(f"must be a finite number, got {json.dumps(v)}", file=path, column=prefix + key)
         # the recording format's bounds, named here: beyond them the run's own recording.json was blamed at writing
-        low, high = (0.0, MAX_NEEDLE_M) if key in ("radius_m", "wire_diameter_m") else (-MAX_ABS_ANGLE_RAD,
-                                                                                       MAX_ABS_ANGLE_RAD)
+        low, high = (MIN_NEEDLE_M[key], MAX_NEEDLE_M) if key in MIN_NEEDLE_M else (-MAX_ABS_ANGLE_RAD,
+                                                                                  MAX_ABS_ANGLE_RAD)
         if not low <= v <= high:
             raise InputError(f"out of range: {v:g} (accepted {low:g} .. {high:g})", file=path, column=prefix + key)
         values[key] = float(v)

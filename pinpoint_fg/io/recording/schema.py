@@ -19,7 +19,8 @@ Decisions the format leaves open (stated here so readers and writers agree):
   recording.json ``width``/``height`` at most :data:`MAX_IMAGE_SIDE_PX`, ``fx``/``fy`` at most
   :data:`MAX_FOCAL_PX`, ``cx``/``cy`` in the pixel range, ``|distortion| <=``
   :data:`MAX_ABS_DISTORTION`, ``frame_rate_hz <=`` :data:`MAX_FRAME_RATE_HZ`, needle lengths at
-  most :data:`MAX_NEEDLE_M` and angles within ``±``:data:`MAX_ABS_ANGLE_RAD`. recording.json is
+  least :data:`MIN_NEEDLE_M` (0.1 mm radius, 1 um wire) and at most :data:`MAX_NEEDLE_M` and angles
+  within ``±``:data:`MAX_ABS_ANGLE_RAD`. recording.json is
   parsed by :func:`pinpoint_fg.io.jsonfile.loads_json` (bounded nesting, no huge integers).
 * A quaternion is accepted when ``| ||q|| - 1 | <= QUAT_NORM_TOL`` (1 %) and normalised;
   anything farther from unit length is a typo or a swapped column, not rounding.
@@ -50,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from factors.geometry import NeedleModel, PinholeCamera
+from factors.geometry import MIN_NEEDLE_RADIUS_M, MIN_WIRE_DIAMETER_M, NeedleModel, PinholeCamera
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.recording.png import decode_image
 
@@ -106,6 +107,8 @@ MAX_ABS_DISTORTION = 1e6
 MAX_FRAME_RATE_HZ = 1e6
 #: Largest accepted needle radius / wire diameter, metres.
 MAX_NEEDLE_M = 1.0
+#: Smallest accepted needle radius / wire diameter, metres (:class:`factors.geometry.NeedleModel`'s floors).
+MIN_NEEDLE_M = {"radius_m": MIN_NEEDLE_RADIUS_M, "wire_diameter_m": MIN_WIRE_DIAMETER_M}
 #: Largest accepted |needle arc angle|, radians.
 MAX_ABS_ANGLE_RAD = 100.0
 #: Longest accepted mask/image path, characters.

@@ -43,6 +43,7 @@ from pinpoint_fg.io.recording.schema import (
     MAX_FRAME_RATE_HZ,
     MAX_IMAGE_SIDE_PX,
     MAX_NEEDLE_M,
+    MIN_NEEDLE_M,
     NEEDLE_KEYS,
     OCCLUSION_LABELS,
     PIXEL_RANGE_FACTOR,
@@ -185,8 +186,8 @@ def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | No
         err(f"must be a JSON object, got {json_shown(needle)}", "needle")
     elif isinstance(needle, dict):
         for key in NEEDLE_KEYS:
-            positive = key in ("radius_m", "wire_diameter_m")
-            bounds = (0.0, MAX_NEEDLE_M) if positive else (-MAX_ABS_ANGLE_RAD, MAX_ABS_ANGLE_RAD)
+            positive = key in MIN_NEEDLE_M
+            bounds = (MIN_NEEDLE_M[key], MAX_NEEDLE_M) if positive else (-MAX_ABS_ANGLE_RAD, MAX_ABS_ANGLE_RAD)
             needle_vals[key] = number(needle, key, f"needle.{key}", positive=positive, bounds=bounds)
 
     if len(errors) > n_before:

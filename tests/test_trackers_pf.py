@@ -264,3 +264,26 @@ def test_reseeds_when_every_particle_is_implausible() -> None:
     assert e_t < 1e-3
     xi = local(est.cam_T_needle, seq.cam_T_needle[1])
     assert np.all(np.isfinite(xi))
+
+
+@pytest.mark.parametrize(("weights", "spread"), [("collapsed", False), ("two", False), ("uniform", True)])
+def test_q95_is_unknown_when_the_weights_have_collapsed(weights: str, spread: bool) -> None:
+    """Weights on fewer than min_spread_ess (20) effective particles read a q95 of one or two particles (it was
+    exactly 0, a claim of certainty, on 60 % of the simulator's frames): the q95 cells are NaN, "unknown"."""
+    rng = np.random.default_rng(3)
+    n = 200
+    T0 = np.eye(4)
+    T0[:3, 3] = [0.0, 0.0, 0.05]
+    T = T0 @ se3_exp(rng.normal(size=(n, 6)) * np.array([0.05] * 3 + [1e-3] * 3))
+    w = {"collapsed": np.r_[1.0, np.full(n - 1, 1e-12)], "two": np.r_[0.5, 0.5, np.full(n - 2, 1e-12)],
+         "uniform": np.full(n, 1.0 / n)}[weights]
+    pf = ParticleFilterTracker(_config(particles=n), PfConfig(random_walk_sigma=(0.0,) * 6, reseed=False))
+    pf.initialize(T, w)
+    est = pf.step(Observation(frame=0, t_s=0.0))  # no evidence: the weights stay as given
+    assert np.isclose(est.extra["ess"], effective_sample_size(w), rtol=1e-6)
+    assert np.isfinite(est.q95_trans_m) == spread and np.isfinite(est.q95_rot_rad) == spread
+    if spread:
+        assert est.q95_trans_m > 0 and est.q95_rot_rad > 0
+    assert pf.settings()["min_spread_ess"] == 20.0
+    with pytest.raises(ValueError, match="min_spread_ess"):
+        PfConfig(min_spread_ess=float("nan"))

@@ -97,6 +97,7 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "trans_z_mean_mm", "trans_z_std_mm",
     "rot_x_mean_deg", "rot_x_std_deg", "rot_y_mean_deg", "rot_y_std_deg", "rot_z_mean_deg", "rot_z_std_deg",
     "trans_q95_mm", "rot_q95_deg", "nlls_trans", "nlls_rot", "is_trans", "is_rot", "coverage_trans", "coverage_rot",
+    "uncertainty_frames_trans", "uncertainty_frames_rot",
     "bimodal_share", "truth_in_dominant_share", "bimodal_frames",
     "ambiguous_frames", "clear_frames", "bimodal_ambiguous_rate", "bimodal_clear_rate",
     "bimodal_modes_share", "truth_kept_modes_share", "truth_kept_particles_share",
@@ -441,6 +442,15 @@ def _pct(x: float) -> str:
     return "–" if x is None or not np.isfinite(x) else f"{100.0 * x:.0f}%"
 
 
+def _spread_share(r: dict, key: str) -> str:
+    """`` @k%`` when the q95 (and the scores from it) of ``key`` ("trans" / "rot") cover only k % of the
+    row's frames, the rest reporting none (a particle filter whose weights collapsed); "" when all do."""
+    n, used = r.get("frames"), r.get(f"uncertainty_frames_{key}")
+    if not n or used is None or used >= n:
+        return ""
+    return f" @{_pct(used / n)}"
+
+
 def _md_cell(text: str) -> str:
     """``text`` as one Markdown table cell: ``|`` escaped, control characters shown as escapes (a recording named
     ``a|b`` shifted its row's values under the wrong headers, a newline in a name cut the row in two)."""
@@ -461,14 +471,14 @@ def table_ii(evals: Sequence[ResultEvaluation]) -> str:
         rows.append([
             ev.label, r["recording"], "Trans (mm)",
             *(_pm(r[f"trans_{a}_mean_mm"], r[f"trans_{a}_std_mm"]) for a in "xyz"),
-            _pm(r["trans_mean_mm"], r["trans_std_mm"]), _f(r["trans_q95_mm"]), _f(r["nlls_trans"]),
-            _f(r["is_trans"]), _f(r["trans_floor_multiple"], 1),
+            _pm(r["trans_mean_mm"], r["trans_std_mm"]), _f(r["trans_q95_mm"]) + _spread_share(r, "trans"),
+            _f(r["nlls_trans"]), _f(r["is_trans"]), _f(r["trans_floor_multiple"], 1),
         ])
         rows.append([
             "", "", "Rot (deg)",
             *(_pm(r[f"rot_{a}_mean_deg"], r[f"rot_{a}_std_deg"]) for a in "xyz"),
-            _pm(r["rot_mean_deg"], r["rot_std_deg"]), _f(r["rot_q95_deg"]), _f(r["nlls_rot"]),
-            _f(r["is_rot"]), _f(r["rot_floor_multiple"], 1),
+            _pm(r["rot_mean_deg"], r["rot_std_deg"]), _f(r["rot_q95_deg"]) + _spread_share(r, "rot"),
+            _f(r["nlls_rot"]), _f(r["is_rot"]), _f(r["rot_floor_multiple"], 1),
         ])
     header = ("Method", "Recording", "Metric", "X", "Y", "Z", "Total", "Unc (p95)", "NLL-S", "IS", "× floor")
     return _md_table(header, rows)
@@ -560,7 +570,8 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
         r = ev.row
         rows.append((
             r["recording"], ev.label, str(r["frames"]), _pm(r["trans_mean_mm"], r["trans_std_mm"]),
-            _pm(r["rot_mean_deg"], r["rot_std_deg"], 1), f"{_f(r['trans_q95_mm'])}/{_f(r['rot_q95_deg'], 1)}",
+            _pm(r["rot_mean_deg"], r["rot_std_deg"], 1),
+            f"{_f(r['trans_q95_mm'])}/{_f(r['rot_q95_deg'], 1)}{_spread_share(r, 'rot')}",
             f"{_f(r['nlls_trans'])}/{_f(r['nlls_rot'])}", f"{_f(r['is_trans'])}/{_f(r['is_rot'], 1)}",
             f"{_f(r['trans_floor_multiple'], 1)}/{_f(r['rot_floor_multiple'], 1)}", _pct(r["bimodal_share"]),
             _pct(r["bimodal_ambiguous_rate"]), _pct(r["bimodal_clear_rate"]),
@@ -602,6 +613,9 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
             f"({r['smoothed_frames']} frames)"))
     lines.append("bimodal = raw share; on ambig./on clear = bimodal rate on frames whose second circle pose "
                  "is within 2.3 nats / beyond 10 nats of the truth's (ΔNLL)")
+    if any(_spread_share(ev.row, "rot") for ev in evals):
+        lines.append("q95 @k%: q95, NLL-S and IS over the k % of frames that report a spread (a particle filter "
+                     "reports none where its weights collapse onto < 20 effective particles)")
     return "\n".join(lines)
 
 

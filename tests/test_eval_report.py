@@ -17,8 +17,10 @@ from pinpoint_fg.eval.ambiguity import label_frames
 from pinpoint_fg.eval.metrics import nll_score
 from pinpoint_fg.eval.report import (
     ABLATION_VARIANTS,
+    comparison_text,
     evaluate,
     evaluate_results,
+    table_ii,
     variant_name,
 )
 from pinpoint_fg.io.recording.reader import read_recording
@@ -256,3 +258,31 @@ def test_smoothed_poses_are_scored_against_the_filtered_ones_of_the_same_frames(
     with pytest.raises(InputError, match="smoothed frame 9999 has no row in estimates.csv") as err:
         evaluate_results([out], out=tmp_path / "eval2", figures=False)
     assert "smoothed.csv" in str(err.value)
+
+
+def test_spreads_over_part_of_the_frames_are_marked(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    """A result with NaN (unknown) q95 on some frames: q95, NLL-S and IS are over the frames that report one,
+    and the comparison and Table II say over which share."""
+    rec = setup[0]
+    out = tmp_path / "pf"
+    settings = {"method": "pf", "particles": 1, "window": 1, "seed": 0, "disabled": [], "noise_file": None}
+    with ResultWriter(out, "pf", settings, rec.info.name, str(rec.root.resolve()), weighted=True) as w:
+        for k, r in enumerate(rec.frames[:F]):
+            T = r.cam_T_needle_gt.copy()
+            T[:3, 3] += OFFSET_M
+            q = 2e-3 if k < 3 else float("nan")  # 3 of 12 frames with a spread
+            w.write(Estimate(frame=r.frame, t_s=r.t_s, cam_T_needle=T, q95_trans_m=q,
+                             q95_rot_rad=q, bimodal=False, iterations=1, latency_ms=1.0,
+                             particles=T[None], log_posterior=np.zeros(1), weights=np.ones(1)))
+    rep = evaluate_results([out, setup[1]["map"]], out=tmp_path / "eval")
+    row = rep.evaluations[0].row
+    assert (row["uncertainty_frames_trans"], row["uncertainty_frames_rot"], row["frames"]) == (3, 3, F)
+    assert np.isclose(row["trans_q95_mm"], 2.0)
+    _, rows = _rows(tmp_path / "eval" / "summary.csv")
+    assert [r["uncertainty_frames_rot"] for r in rows] == ["3", str(F)]
+    text = comparison_text(rep.evaluations)
+    pf_line = next(line for line in text.splitlines() if " pf " in f" {line} ")
+    assert "@25%" in pf_line and "q95 @k%" in text
+    map_line = next(line for line in text.splitlines() if " map " in f" {line} ")
+    assert "@" not in map_line
+    assert "2.00 @25%" in table_ii(rep.evaluations)

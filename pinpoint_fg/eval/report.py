@@ -444,7 +444,8 @@ def _pct(x: float) -> str:
 
 def _spread_share(r: dict, key: str) -> str:
     """`` @k%`` when the q95 (and the scores from it) of ``key`` ("trans" / "rot") cover only k % of the
-    row's frames, the rest reporting none (a particle filter whose weights collapsed); "" when all do."""
+    row's frames, the rest reporting none (NaN: a result written by other code, or a tracker that could not
+    tell); "" when all do. Averaged over the frames that have one, a spread must say how many those are."""
     n, used = r.get("frames"), r.get(f"uncertainty_frames_{key}")
     if not n or used is None or used >= n:
         return ""
@@ -614,8 +615,8 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     lines.append("bimodal = raw share; on ambig./on clear = bimodal rate on frames whose second circle pose "
                  "is within 2.3 nats / beyond 10 nats of the truth's (ΔNLL)")
     if any(_spread_share(ev.row, "rot") for ev in evals):
-        lines.append("q95 @k%: q95, NLL-S and IS over the k % of frames that report a spread (a particle filter "
-                     "reports none where its weights collapse onto < 20 effective particles)")
+        lines.append("q95 @k%: q95, NLL-S and IS over the k % of frames that report a spread (the others' q95 "
+                     "cells are NaN, unknown)")
     return "\n".join(lines)
 
 

@@ -158,6 +158,10 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
             f"{_pct(r.get('coverage_trans'))}/{_pct(r.get('coverage_rot'))} "
             f"{_pct(r.get('bimodal_modes_ref_multi_rate'), 11)}/{_pct(r.get('bimodal_modes_ref_single_rate'))}"
         )
+    partial = [f"{r['scenario']} {r['method']} {_pct(r['uncertainty_frames_rot'] / r['frames']).strip()}"
+               for r in rows if r.get("frames") and r.get("uncertainty_frames_rot", r["frames"]) < r["frames"]]
+    if partial:  # NaN q95 cells (unknown): the scores are over the other frames
+        lines.append("q95 and cover over the frames that report a spread: " + ", ".join(partial))
     lines += ["", "SVN's mean errors over MAP's and MHT's (same frames)",
               "scenario     trans/map  rot/map  trans/mht  rot/mht"]
     for sc in BENCH_SCENARIOS:

@@ -192,7 +192,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_file
 
     prepare_output_file(args.out, args.overwrite, "noise file", inputs=args.runs)
-    noise = calibrate_runs(args.runs, fit_correlation=args.conic_correlation, conic_distance=args.conic_distance)
+    notes: list[str] = []
+    noise = calibrate_runs(args.runs, fit_correlation=args.conic_correlation, conic_distance=args.conic_distance,
+                           notes=notes)
+    for note in notes:
+        print(note, file=sys.stderr)
     noise.save(args.out)
     print(format_table(noise))
     print(f"wrote {args.out}")

@@ -216,3 +216,59 @@ def test_calibrate_with_the_geometric_distance(calib: tuple[SimRun, Path], tmp_p
     assert NoiseConfig.load(tmp_path / "g.json")["conic"].sigma[0] != calibrate_runs([path])["conic"].sigma[0]
     with pytest.raises(ValueError, match="conic_distance"):
         residuals_at_truth(rec, conic_distance="euclid")
+
+
+def _with_gt(src: Path, dest: Path, change: dict) -> Path:
+    """A copy of run ``src`` whose ground truth of the frames in ``change`` is replaced (None: cleared)."""
+    import shutil
+
+    shutil.copytree(src, dest)
+    replace_ground_truth(dest, change)
+    return dest
+
+
+def test_ground_truth_that_does_not_describe_its_frame_is_left_out(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    """Three gt depths of 9.9 m among forty frames gave an anchor std of 2.6 m and a conic std of 11 px: such
+    frames are left out (the calibration equals that with their gt cleared) and named in a note."""
+    src = simulate("calibration", 40, seed=1, out=tmp_path / "run", config=WHITE)
+    rec = read_recording(src)
+    far = {}
+    for f in rec.frames[5:8]:
+        T = f.cam_T_needle_gt.copy()
+        T[2, 3] = 9.9
+        far[f.frame] = T
+    bad = _with_gt(src, tmp_path / "far", far)
+    cleared = _with_gt(src, tmp_path / "cleared", dict.fromkeys(far))
+    notes: list[str] = []
+    noise = calibrate_runs([bad], notes=notes)
+    assert noise.to_json() == calibrate_runs([cleared]).to_json()
+    assert noise["grasp_position"].sigma.max() < 1e-3  # was 2.6 m
+    rows = [read_recording(bad).row_of(f) for f in rec.frames[5:8]]
+    assert len(notes) == 1 and "3 ground-truth frame(s) left out" in notes[0]
+    assert all(f"{r} (x" in notes[0] for r in rows)
+    capsys.readouterr()
+    assert main(["calibrate", str(bad), "--out", str(tmp_path / "n.json")]) == 0
+    assert "left out" in capsys.readouterr().err
+
+
+def test_ground_truth_in_the_wrong_unit_throughout_is_refused(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    """Every gt translation 100x too large (centimetres typed as metres): nothing is left to calibrate from, and
+    the first row is named (exit 2), not a noise file of metre-sized sigmas."""
+    src = simulate("calibration", 12, seed=2, out=tmp_path / "run", config=WHITE)
+    rec = read_recording(src)
+    cm = {}
+    for f in rec.frames:
+        if f.cam_T_needle_gt is not None:
+            T = f.cam_T_needle_gt.copy()
+            T[:3, 3] *= 100.0
+            cm[f.frame] = T
+    bad = _with_gt(src, tmp_path / "cm", cm)
+    with pytest.raises(InputError) as exc:
+        calibrate_runs([bad])
+    first = next(f for f in read_recording(bad).frames if f.cam_T_needle_gt is not None)
+    assert exc.value.column == "gt_z_m" and exc.value.row == read_recording(bad).row_of(first)
+    assert "metres expected" in str(exc.value)
+    assert main(["calibrate", str(bad), "--out", str(tmp_path / "n.json")]) == 2
+    assert not (tmp_path / "n.json").exists()

@@ -30,6 +30,14 @@ Choices the paper leaves open:
 * Residuals whose error is a slowly varying bias (robot kinematics) are strongly correlated in
   time: the sampling error of their covariance is set by the number of *independent* stretches
   (run length / correlation time), not by the frame count. Calibrate on long, varied runs.
+* A ground-truth pose whose needle would look far smaller than the frame's image measurements
+  show it (:func:`gt_scale_ratio` above :data:`GT_SCALE_GATE`: a depth typed in the wrong unit, a
+  failed board detection) does not describe that frame: its residuals are those of another pose.
+  Such frames are left out and named (``skipped``); when every ground-truth frame of a run is,
+  the run is refused (:class:`InputError` at its first such row, ``gt_z_m``). Three such frames
+  among forty (depth 9.9 m) had given an anchor std of 2.6 m and a conic std of 11 px (1.2 px without
+  them). Only "too small" is tested: occlusion can hide most of a needle, so an image extent far
+  *below* the projected one is no evidence against the pose.
 * The backbone residuals of one mask are correlated along the arc. With ``fit_correlation``
   (``calibrate --conic-correlation``) the correlation length ``ell`` of the Ornstein-Uhlenbeck
   model of :mod:`factors.conic_correlation` is fitted too, from the residuals' integrated
@@ -71,17 +79,49 @@ def _in_front(recording: Recording, rec: FrameRecord, T: np.ndarray, points: lis
                              row=recording.row_of(rec), column="gt_z_m")
 
 
-def residuals_at_truth(recording: Recording, conic_frames: list | None = None, conic_distance: str = "sampson"
-                       ) -> dict[str, np.ndarray]:
+#: A ground-truth frame is left out when its image measurements span more than this many times the needle's
+#: projected extent at the ground truth (:func:`gt_scale_ratio`).
+GT_SCALE_GATE = 3.0
+#: Pixels added to the projected extent before the gate (a needle seen as a few pixels: detection noise).
+GT_SCALE_SLACK_PX = 10.0
+
+
+def gt_scale_ratio(recording: Recording, T: np.ndarray, tip_px: np.ndarray | None, tail_px: np.ndarray | None,
+                   backbone_px: np.ndarray | None) -> float | None:
+    """How many times larger the frame's image measurements are than the needle projected at ``T`` (None: the
+    frame has no extent to compare, i.e. neither both keypoints nor a backbone).
+
+    The measured extent is the smaller of the tip-tail distance and the backbone's bounding-box diagonal
+    (undistorted pixels; the smaller, so a false keypoint or a stray mask blob alone cannot inflate it); the
+    projected one is the bounding-box diagonal of the arc at ``T`` plus :data:`GT_SCALE_SLACK_PX`.
+    """
+    extents = []
+    if tip_px is not None and tail_px is not None:
+        extents.append(float(np.linalg.norm(np.asarray(tip_px) - np.asarray(tail_px))))
+    if backbone_px is not None and len(backbone_px) >= 2:
+        b = np.asarray(backbone_px, dtype=float)
+        extents.append(float(np.linalg.norm(b.max(axis=0) - b.min(axis=0))))
+    if not extents:
+        return None
+    arc = recording.info.needle.arc_points(64) @ T[:3, :3].T + T[:3, 3]
+    px = recording.info.camera.project(arc)
+    projected = float(np.linalg.norm(px.max(axis=0) - px.min(axis=0)))
+    return min(extents) / (projected + GT_SCALE_SLACK_PX)
+
+
+def residuals_at_truth(recording: Recording, conic_frames: list | None = None, conic_distance: str = "sampson",
+                       skipped: list | None = None) -> dict[str, np.ndarray]:
     """Every residual type evaluated at the ground-truth poses of one run.
 
     Returns ``{type: (n, d) array}`` for the types of :data:`pinpoint_fg.noise.RESIDUAL_DIMS`
     (``n`` may be 0). Frames without ground truth contribute nothing. ``conic_frames``: a list that
     receives each masked frame's ``(backbone pixels (M, 2), residuals (M,))``. ``conic_distance``: the backbone
     residual's, "sampson" (:func:`factors.residuals.conic_residual`) or "geometric"
-    (:func:`factors.residuals.conic_geometric_residual`): calibrate with the one you track with. Raises
-    :class:`InputError` naming the run when no frame has ground truth, and naming the row when a frame's
-    ground truth puts a needle point its image shows behind the camera.
+    (:func:`factors.residuals.conic_geometric_residual`): calibrate with the one you track with. ``skipped``: a
+    list that receives ``(frame record, ratio)`` of each ground-truth frame left out by the scale gate (module
+    docstring). Raises :class:`InputError` naming the run when no frame has ground truth, naming the row when a
+    frame's ground truth puts a needle point its image shows behind the camera, and naming the first such row
+    when the scale gate leaves out every ground-truth frame that it could test and no frame is left.
     """
     if not recording.has_ground_truth:
         raise InputError("no frame has ground truth (gt_* columns): cannot calibrate", file=recording.root)
@@ -92,6 +132,8 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
     K = cam.K
     out: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
     prev = None  # previous FrameRecord
+    left_out: list[tuple[FrameRecord, float]] = []
+    used = 0
     for rec in recording.frames:
         T = rec.cam_T_needle_gt
         if T is None:
@@ -100,6 +142,12 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
         obs = observe_frame(recording, rec)
         _in_front(recording, rec, T, [("tip", nd.tip_m, obs.tip_px), ("tail", nd.tail_m, obs.tail_px),
                                       ("centre", np.zeros(3), obs.backbone_px)])
+        ratio = gt_scale_ratio(recording, T, obs.tip_px, obs.tail_px, obs.backbone_px)
+        if ratio is not None and ratio > GT_SCALE_GATE:
+            left_out.append((rec, ratio))
+            prev = None  # nor the motion residuals that would pair it with its neighbours
+            continue
+        used += 1
         if obs.tip_px is not None:
             out["tip"].append(res.keypoint_residual(T, K, nd.tip_m, obs.tip_px)[0])
         if obs.tail_px is not None:
@@ -118,6 +166,14 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
                 D = G @ np.linalg.inv(prev.cam_T_grasper)
                 out["motion"].append(res.motion_residual(prev.cam_T_needle_gt, T, D)[0])
         prev = rec
+    if left_out and used == 0:
+        rec, ratio = left_out[0]
+        raise InputError(f"the ground truth of every frame that can be checked puts the needle {ratio:.3g}x "
+                         f"smaller than its image shows it (here at depth {rec.cam_T_needle_gt[2, 3]:.4g} m): "
+                         "metres expected; correct the gt_* cells", file=recording.csv_path,
+                         row=recording.row_of(rec), column="gt_z_m")
+    if skipped is not None:
+        skipped.extend(left_out)
     return {k: (np.concatenate(v, axis=0) if v else np.zeros((0, RESIDUAL_DIMS[k]))) for k, v in out.items()}
 
 
@@ -204,10 +260,12 @@ def fit_conic_correlation(frames: list[tuple[np.ndarray, np.ndarray]], noise: Re
     return float(-step / np.log(a))
 
 
-def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distance: str = "sampson") -> NoiseConfig:
+def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distance: str = "sampson",
+                   notes: list[str] | None = None) -> NoiseConfig:
     """Calibrated noise of every residual type from the ground truth of ``runs`` (module docstring); with
     ``fit_correlation`` also the backbone residuals' correlation length along the arc; ``conic_distance``: the
-    backbone residual's (:func:`residuals_at_truth`).
+    backbone residual's (:func:`residuals_at_truth`). ``notes`` receives one line per run with ground-truth
+    frames left out by the scale gate (the count and the first rows).
 
     Raises :class:`InputError` naming the run when a run cannot be read or has no ground truth, or is given twice.
     """
@@ -218,7 +276,14 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distan
     pooled: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
     conic_frames: list[tuple[np.ndarray, np.ndarray]] = []
     for run in runs:
-        samples = residuals_at_truth(read_recording(run), conic_frames if fit_correlation else None, conic_distance)
+        recording = read_recording(run)
+        skipped: list[tuple[FrameRecord, float]] = []
+        samples = residuals_at_truth(recording, conic_frames if fit_correlation else None, conic_distance, skipped)
+        if skipped and notes is not None:
+            first = ", ".join(f"{recording.row_of(r)} (x{ratio:.3g})" for r, ratio in skipped[:3])
+            notes.append(f"note: {recording.csv_path}: {len(skipped)} ground-truth frame(s) left out: the needle "
+                         f"would look several times smaller there than its image shows it (rows {first}"
+                         f"{', ...' if len(skipped) > 3 else ''}); check their gt_* cells")
         for k, v in samples.items():
             pooled[k].append(v)
     noise = noise_from_residuals({k: np.concatenate(v, axis=0) for k, v in pooled.items()})

@@ -36,6 +36,28 @@ def test_a_valid_document_loads(tmp_path: Path) -> None:
         settings_entry(scale, "pf")
 
 
+def test_factors_fitted_for_another_coverage_are_not_applied(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A file of factors for 90 % coverage loads (the format allows any level) but scales no q95 column: those are
+    95 % bounds, and applying it would have labelled a 90 % bound q95, silently."""
+    from pinpoint_fg.cli import main
+
+    path = tmp_path / "scale90.json"
+    path.write_text(json.dumps({**valid_doc(), "level": 0.9}))
+    scale = SpreadScale.load(path)
+    assert scale.level == 0.9
+    with pytest.raises(InputError, match="fitted for 90 % coverage") as exc:
+        settings_entry(scale, "svn")
+    assert exc.value.column == "level"
+    run = tmp_path / "run"
+    assert main(["simulate", "--scenario", "normal", "--frames", "3", "--seed", "1", "--out", str(run)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["track", str(run), "--method", "svn", "--spread-scale", str(path), "--out", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "'level'" in err[0] and str(path) in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
 
 
 def _set(doc: dict, dotted: str, value: object) -> dict:

@@ -84,7 +84,13 @@ class SpreadScale:
     """The file it was read from (None when built in memory)."""
 
     def for_method(self, method: str) -> MethodScale:
-        """The factors of ``method``; :class:`InputError` when the file has none (never a silent 1.0)."""
+        """The factors of ``method``; :class:`InputError` when the file has none (never a silent 1.0), or when they
+        were fitted for another coverage than :data:`LEVEL`: applied to the q95 columns (95 % bounds by the result
+        format), a 90 % file's factors would label a 90 % bound q95."""
+        if not math.isclose(self.level, LEVEL, rel_tol=0.0, abs_tol=1e-12):
+            raise InputError(f"the factors were fitted for {100 * self.level:g} % coverage; the q95 columns they "
+                             f"scale are {100 * LEVEL:g} % bounds (refit with `pinpoint-fg calibrate-spread`)",
+                             file=self.source, column="level")
         if method in self.unfitted:
             raise InputError(f"no scale for method {method!r}: it could not be fitted ({self.unfitted[method]})",
                              file=self.source, column=f"methods.{method}")

@@ -16,6 +16,7 @@ Usage (one thread)::
     .venv/bin/python scripts/conic_weight.py sweep C svn,map RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py correlated ELL svn,map RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py distance {sampson,geometric} svn,map RUN [RUN ...]
+    .venv/bin/python scripts/conic_weight.py combined ELL svn,map RUN [RUN ...]
     .venv/bin/python scripts/conic_weight.py terms RUN RESULT_DIR FIRST LAST STEP
     .venv/bin/python scripts/conic_weight.py trail C RUN FIRST LAST
 
@@ -23,6 +24,9 @@ Usage (one thread)::
 ``ELL`` px (``NoiseConfig.conic_correlation_px``, :mod:`factors.conic_correlation`; 0 = independent pixels).
 
 ``distance`` is ``sweep`` with the default noise and the backbone distance given (``--conic-distance``).
+
+``combined`` is both at once: the geometric distance, correlated along the arc with length ``ELL``
+(``track --conic-distance geometric --conic-correlation-px ELL``).
 
 ``trail`` tracks RUN with SVN at weight ``1 / c^2`` and prints, for frames FIRST..LAST-1, how far (nats of
 log-posterior) the best particle within 2 mm / 10 deg of the truth trails the best particle overall, and
@@ -152,6 +156,11 @@ if __name__ == "__main__":
         for path in sys.argv[4:]:
             ell = float(sys.argv[2])
             sweep(ell, sys.argv[3].split(","), Path(path), NoiseConfig(conic_correlation_px=ell), "ell")
+    elif len(sys.argv) >= 5 and sys.argv[1] == "combined":
+        for path in sys.argv[4:]:
+            ell = float(sys.argv[2])
+            sweep(ell, sys.argv[3].split(","), Path(path), NoiseConfig(conic_correlation_px=ell), "ell+geometric",
+                  distance="geometric")
     elif len(sys.argv) >= 5 and sys.argv[1] == "sweep":
         for path in sys.argv[4:]:
             sweep(float(sys.argv[2]), sys.argv[3].split(","), Path(path))

@@ -280,9 +280,9 @@ def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200)
 
     Tip/tail keypoints are undistorted; one that lies outside the image (by more than
     :data:`KEYPOINT_OUTSIDE_PX`) is taken as not detected: no detector reports a point it cannot
-    see, the distortion model means nothing there, and one such cell (a keypoint in another
-    image's pixel scale, a sentinel like -5000) turned both SVN's and MAP's pose by 140 deg for ten
-    frames. :func:`outside_image_note` tells the user. The backbone comes from the frame's mask via
+    see, the distortion model means nothing there, and such cells (a keypoint in another image's
+    pixel scale, a sentinel like -5000) on ten frames had turned both SVN's and MAP's pose by
+    140 deg on those frames. :func:`outside_image_note` tells the user. The backbone comes from the frame's mask via
     :func:`backbone_from_mask` (None when the frame has no mask or the mask holds no
     needle); ``cam_T_grasper`` is passed through.
     """

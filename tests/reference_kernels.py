@@ -21,30 +21,9 @@ from pinpoint_fg.stein import SteinConfig, SteinStep, _check_particles
 def conic_residual_reference(
     cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, points_px: np.ndarray, jacobian: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Sampson distance (pixels) of each backbone pixel to the image conic of the needle circle.
-
-    ``H = K [r1 r2 t]`` maps the needle plane to the image; with ``A = adj(H)`` (the adjugate,
-    ``H^-1 ∝ A``) the conic is ``C = A^T Q A``, ``Q = diag(1, 1, -r^2)`` (paper Eq. for C(T)).
-    For a pixel ``x = (u, v, 1)``: ``y = A x``, ``f = x^T C x = y1^2 + y2^2 - r^2 y3^2``,
-    ``g = grad_(u,v) f = 2 (A^T Q y)_{1:2}`` (image coordinates only — the paper's 3-vector norm
-    is a slip, DESIGN.md), and the residual is ``s = f / |g|``.
-
-    The Sampson distance is invariant to the scale of ``C``, so ``A`` is normalised per pose to
-    unit Frobenius norm (its derivative then drops out of ``ds``). The denominator is
-    regularised without a scale: ``s = f |g| / (|g|^2 + (f / D)^2)`` with
-    ``D = SAMPSON_MAX_PX``. It differs from ``f / |g|`` by a relative ``(s / D)^2`` (< 1e-12 for
-    any pixel within 100 px of the conic) and stays finite where ``g = 0`` — at the conic's
-    centre, and on the double line an edge-on needle projects to (``H`` singular, ``A`` rank 1,
-    ``C = l l^T``) — where such pixels read 0 (0/0 is defined as 0). ``|s|`` never exceeds
-    ``D / 2``. The circle is the full circle, not the arc (the paper's model). A circle behind
-    the camera projects to the same conic: this residual cannot see cheirality.
-
-    Internally the pixels are centred and scaled (``x = P xh``) so every product is O(1); ``f``
-    is unchanged by that and the image gradient scales exactly, so the result is the same
-    Sampson distance in pixels.
-
-    ``points_px`` ``(M, 2)`` are undistorted pixels. Returns ``r (N, M)``, ``J (N, M, 6)``
-    (``J`` is None with ``jacobian=False``, which skips its computation; ``r`` is identical).
+    """:func:`factors.residuals.conic_residual` as first written (the same Sampson distance, its docstring states
+    the mathematics): every product formed in full, no coefficient tables. The production kernel is pinned to
+    this one; kept apart so a restructuring of the fast path is checked against an independent copy.
     """
     T = as_pose_batch(cam_T_needle)
     K = np.asarray(K, dtype=float)

@@ -286,3 +286,80 @@ def test_spreads_over_part_of_the_frames_are_marked(setup, tmp_path: Path) -> No
     map_line = next(line for line in text.splitlines() if " map " in f" {line} ")
     assert "@" not in map_line
     assert "2.00 @25%" in table_ii(rep.evaluations)
+
+
+def _result_on(rec: Recording, poses_from: Recording, out: Path) -> Path:
+    """A MAP result on ``rec`` whose poses are ``poses_from``'s ground truth plus the 1 mm offset."""
+    settings = {"method": "map", "particles": 1, "window": 1, "seed": 0, "disabled": [], "noise_file": None}
+    with ResultWriter(out, "map", settings, rec.info.name, str(rec.root.resolve())) as w:
+        for r, src in zip(rec.frames[:F], poses_from.frames[:F], strict=True):
+            T = src.cam_T_needle_gt.copy()
+            T[:3, 3] += OFFSET_M
+            w.write(Estimate(frame=r.frame, t_s=r.t_s, cam_T_needle=T, q95_trans_m=2e-3, q95_rot_rad=0.1,
+                             bimodal=False, iterations=1, latency_ms=1.0, particles=T[None],
+                             log_posterior=np.zeros(1)))
+    return out
+
+
+def _run_with_gt(src: Path, dest: Path, change: dict) -> Recording:
+    import shutil
+
+    from pinpoint_fg.io.recording import replace_ground_truth
+
+    shutil.copytree(src, dest)
+    replace_ground_truth(dest, change)
+    return read_recording(dest)
+
+
+def test_ground_truth_that_does_not_describe_its_frame_is_left_out_of_the_scores(
+        setup, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
+    """Two gt depths of 9.9 m (a unit slip in two cells; without the gate the mean translation error was 1642
+    instead of 1.0 mm): the scores equal those with the two cells cleared, summary.csv counts them, and one
+    note names their rows."""
+    rec = setup[0]
+    far = {}
+    for f in rec.frames[4:6]:
+        T = f.cam_T_needle_gt.copy()
+        T[2, 3] = 9.9
+        far[f.frame] = T
+    bad = _run_with_gt(rec.root, tmp_path / "far", far)
+    cleared = _run_with_gt(rec.root, tmp_path / "cleared", dict.fromkeys(far))
+    rep_bad = evaluate_results([_result_on(bad, rec, tmp_path / "r_bad")], out=tmp_path / "e_bad", figures=False)
+    rep_ok = evaluate_results([_result_on(cleared, rec, tmp_path / "r_ok")], out=tmp_path / "e_ok", figures=False)
+    row_bad, row_ok = rep_bad.evaluations[0].row, rep_ok.evaluations[0].row
+    for k in ("trans_mean_mm", "rot_mean_deg", "coverage_trans", "floor_trans_mm", "nlls_trans"):
+        assert row_bad[k] == row_ok[k], k
+    assert row_bad["trans_mean_mm"] == pytest.approx(1.0, abs=1e-9)
+    assert (row_bad["gt_left_out_frames"], row_ok["gt_left_out_frames"]) == (2, 0)
+    notes = [line for line in rep_bad.text.splitlines() if line.startswith("note:")]
+    rows = [bad.row_of(f) for f in bad.frames[4:6]]
+    assert len(notes) == 1 and "2 ground-truth frame(s) left out of the scores" in notes[0]
+    assert all(f"{r} (x" in notes[0] for r in rows)
+    assert not any(line.startswith("note:") for line in rep_ok.text.splitlines())
+    _, csv_rows = _rows(tmp_path / "e_bad" / "summary.csv")
+    assert csv_rows[0]["gt_left_out_frames"] == "2"
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp_path / "r_bad"), "--out", str(tmp_path / "e_cli")]) == 0
+    assert sum(line.startswith("note:") for line in capsys.readouterr().out.splitlines()) == 1
+
+
+def test_ground_truth_in_the_wrong_unit_throughout_is_refused_before_the_output_exists(
+        setup, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
+    """Every gt translation 100x too large: the first row is named, exit 2, and no --out directory is left."""
+    rec = setup[0]
+    cm = {}
+    for f in rec.frames:
+        T = f.cam_T_needle_gt.copy()
+        T[:3, 3] *= 100.0
+        cm[f.frame] = T
+    bad = _run_with_gt(rec.root, tmp_path / "cm", cm)
+    result = _result_on(bad, rec, tmp_path / "r")
+    with pytest.raises(InputError) as exc:
+        evaluate_results([result], out=tmp_path / "e", figures=False)
+    assert exc.value.column == "gt_z_m" and exc.value.row == bad.row_of(bad.frames[0])
+    assert not (tmp_path / "e").exists()
+    capsys.readouterr()
+    assert main(["evaluate", str(result), "--out", str(tmp_path / "e2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gt_z_m" in err[0] and "Traceback" not in err[0]
+    assert not (tmp_path / "e2").exists()

@@ -31,13 +31,11 @@ Choices the paper leaves open:
   time: the sampling error of their covariance is set by the number of *independent* stretches
   (run length / correlation time), not by the frame count. Calibrate on long, varied runs.
 * A ground-truth pose whose needle would look far smaller than the frame's image measurements
-  show it (:func:`gt_scale_ratio` above :data:`GT_SCALE_GATE`: a depth typed in the wrong unit, a
-  failed board detection) does not describe that frame: its residuals are those of another pose.
-  Such frames are left out and named (``skipped``); when every ground-truth frame of a run is,
-  the run is refused (:class:`InputError` at its first such row, ``gt_z_m``). Three such frames
-  among forty (depth 9.9 m) had given an anchor std of 2.6 m and a conic std of 11 px (1.2 px without
-  them). Only "too small" is tested: occlusion can hide most of a needle, so an image extent far
-  *below* the projected one is no evidence against the pose.
+  show it (:mod:`pinpoint_fg.eval.gt_scale`: a depth typed in the wrong unit, a failed board
+  detection) does not describe that frame: its residuals are those of another pose. Such frames
+  are left out and named (``skipped``); when every ground-truth frame of a run that it can test
+  is, the run is refused (:class:`InputError` at its first such row, ``gt_z_m``). Three such frames among forty
+  (depth 9.9 m) had given an anchor std of 2.6 m and a conic std of 11 px (1.2 px without them).
 * The backbone residuals of one mask are correlated along the arc. With ``fit_correlation``
   (``calibrate --conic-correlation``) the correlation length ``ell`` of the Ornstein-Uhlenbeck
   model of :mod:`factors.conic_correlation` is fitted too, from the residuals' integrated
@@ -54,6 +52,7 @@ import numpy as np
 from factors import residuals as res
 from factors.conic_correlation import arc_order
 from pinpoint_fg.errors import InputError, path_list, refuse_repeated
+from pinpoint_fg.eval.gt_scale import GT_SCALE_GATE, gt_scale_ratio, left_out_note, refuse_all_left_out
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import FrameRecord, Recording
 from pinpoint_fg.likelihood import CONIC_DISTANCES
@@ -79,35 +78,6 @@ def _in_front(recording: Recording, rec: FrameRecord, T: np.ndarray, points: lis
                              row=recording.row_of(rec), column="gt_z_m")
 
 
-#: A ground-truth frame is left out when its image measurements span more than this many times the needle's
-#: projected extent at the ground truth (:func:`gt_scale_ratio`).
-GT_SCALE_GATE = 3.0
-#: Pixels added to the projected extent before the gate (a needle seen as a few pixels: detection noise).
-GT_SCALE_SLACK_PX = 10.0
-
-
-def gt_scale_ratio(recording: Recording, T: np.ndarray, tip_px: np.ndarray | None, tail_px: np.ndarray | None,
-                   backbone_px: np.ndarray | None) -> float | None:
-    """How many times larger the frame's image measurements are than the needle projected at ``T`` (None: the
-    frame has no extent to compare, i.e. neither both keypoints nor a backbone).
-
-    The measured extent is the smaller of the tip-tail distance and the backbone's bounding-box diagonal
-    (undistorted pixels; the smaller, so a false keypoint or a stray mask blob alone cannot inflate it); the
-    projected one is the bounding-box diagonal of the arc at ``T`` plus :data:`GT_SCALE_SLACK_PX`.
-    """
-    extents = []
-    if tip_px is not None and tail_px is not None:
-        extents.append(float(np.linalg.norm(np.asarray(tip_px) - np.asarray(tail_px))))
-    if backbone_px is not None and len(backbone_px) >= 2:
-        b = np.asarray(backbone_px, dtype=float)
-        extents.append(float(np.linalg.norm(b.max(axis=0) - b.min(axis=0))))
-    if not extents:
-        return None
-    arc = recording.info.needle.arc_points(64) @ T[:3, :3].T + T[:3, 3]
-    px = recording.info.camera.project(arc)
-    projected = float(np.linalg.norm(px.max(axis=0) - px.min(axis=0)))
-    return min(extents) / (projected + GT_SCALE_SLACK_PX)
-
 
 def residuals_at_truth(recording: Recording, conic_frames: list | None = None, conic_distance: str = "sampson",
                        skipped: list | None = None) -> dict[str, np.ndarray]:
@@ -121,7 +91,7 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
     list that receives ``(frame record, ratio)`` of each ground-truth frame left out by the scale gate (module
     docstring). Raises :class:`InputError` naming the run when no frame has ground truth, naming the row when a
     frame's ground truth puts a needle point its image shows behind the camera, and naming the first such row
-    when the scale gate leaves out every ground-truth frame that it could test and no frame is left.
+    when the scale gate leaves out every ground-truth frame that it could test.
     """
     if not recording.has_ground_truth:
         raise InputError("no frame has ground truth (gt_* columns): cannot calibrate", file=recording.root)
@@ -133,7 +103,7 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
     out: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
     prev = None  # previous FrameRecord
     left_out: list[tuple[FrameRecord, float]] = []
-    used = 0
+    passed = 0  # frames the gate could test and kept
     for rec in recording.frames:
         T = rec.cam_T_needle_gt
         if T is None:
@@ -147,7 +117,7 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
             left_out.append((rec, ratio))
             prev = None  # nor the motion residuals that would pair it with its neighbours
             continue
-        used += 1
+        passed += ratio is not None
         if obs.tip_px is not None:
             out["tip"].append(res.keypoint_residual(T, K, nd.tip_m, obs.tip_px)[0])
         if obs.tail_px is not None:
@@ -166,12 +136,8 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
                 D = G @ np.linalg.inv(prev.cam_T_grasper)
                 out["motion"].append(res.motion_residual(prev.cam_T_needle_gt, T, D)[0])
         prev = rec
-    if left_out and used == 0:
-        rec, ratio = left_out[0]
-        raise InputError(f"the ground truth of every frame that can be checked puts the needle {ratio:.3g}x "
-                         f"smaller than its image shows it (here at depth {rec.cam_T_needle_gt[2, 3]:.4g} m): "
-                         "metres expected; correct the gt_* cells", file=recording.csv_path,
-                         row=recording.row_of(rec), column="gt_z_m")
+    if left_out and passed == 0:
+        refuse_all_left_out(recording, left_out)
     if skipped is not None:
         skipped.extend(left_out)
     return {k: (np.concatenate(v, axis=0) if v else np.zeros((0, RESIDUAL_DIMS[k]))) for k, v in out.items()}
@@ -280,10 +246,7 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distan
         skipped: list[tuple[FrameRecord, float]] = []
         samples = residuals_at_truth(recording, conic_frames if fit_correlation else None, conic_distance, skipped)
         if skipped and notes is not None:
-            first = ", ".join(f"{recording.row_of(r)} (x{ratio:.3g})" for r, ratio in skipped[:3])
-            notes.append(f"note: {recording.csv_path}: {len(skipped)} ground-truth frame(s) left out: the needle "
-                         f"would look several times smaller there than its image shows it (rows {first}"
-                         f"{', ...' if len(skipped) > 3 else ''}); check their gt_* cells")
+            notes.append(left_out_note(recording, skipped))
         for k, v in samples.items():
             pooled[k].append(v)
     noise = noise_from_residuals({k: np.concatenate(v, axis=0) for k, v in pooled.items()})

@@ -25,6 +25,12 @@ truth:
 * fixed-lag smoothing (results tracked with a window L > 1): the smoothed poses' mean errors beside the
   filtered estimates' on the same frames (:func:`smoothed_accuracy`).
 
+Ground truth that does not describe its frame (:mod:`pinpoint_fg.eval.gt_scale`: the needle it puts in
+view several times smaller than the frame's keypoints and mask show it, e.g. a depth in centimetres) is
+left out of every score, counted in ``gt_left_out_frames`` and named in one ``note:`` line of the text;
+a recording whose every checkable ground-truth frame fails is refused (exit 2 from the CLI), before
+``out`` is created.
+
 The ΔNLL labels and the floor depend on the recording and the frame likelihood only (the
 likelihood switches and the noise, not the method), so they are computed once per
 (recording, switches without ``motion``, noise file) and shared by every result that uses them.
@@ -52,6 +58,7 @@ from threadpoolctl import threadpool_limits
 from pinpoint_fg.errors import InputError, path_argument, path_list
 from pinpoint_fg.eval import plots
 from pinpoint_fg.eval.ambiguity import AmbiguityConfig, RecordingAmbiguity, analyse_recording
+from pinpoint_fg.eval.gt_scale import left_out_frames, left_out_note
 from pinpoint_fg.eval.metrics import PoseErrors, breakdown_by_label, pose_errors, summarize_errors
 from pinpoint_fg.eval.modes import (
     ResultModes,
@@ -108,7 +115,7 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "trans_mm_none", "trans_mm_partial", "trans_mm_heavy", "rot_deg_none", "rot_deg_partial", "rot_deg_heavy",
     "latency_median_ms", "latency_p95_ms",
     "smoothed_frames", "smoothed_trans_mean_mm", "smoothed_rot_mean_deg", "filtered_trans_mean_mm_same",
-    "filtered_rot_mean_deg_same",
+    "filtered_rot_mean_deg_same", "gt_left_out_frames",
 )
 
 
@@ -345,14 +352,17 @@ Reference = tuple[str, np.ndarray, np.ndarray]
 
 def _evaluate_one(
     res: Result, recording: Recording, amb: RecordingAmbiguity, variant: str, label: str,
-    modes: ResultModes | None = None, reference: Reference | None = None,
+    modes: ResultModes | None = None, reference: Reference | None = None, gt_left_out: set[int] | None = None,
 ) -> ResultEvaluation:
+    """One result's metrics; ``gt_left_out``: frame numbers whose ground truth the scale gate left out
+    (:mod:`~pinpoint_fg.eval.gt_scale`), scored as frames without ground truth."""
     idx = _rows_in_recording(res, recording)
     F = len(res)
     T_gt = np.full((F, 4, 4), np.nan)
+    gone = gt_left_out or set()
     for i, k in enumerate(idx):
         g = recording.frames[k].cam_T_needle_gt
-        if g is not None:
+        if g is not None and int(recording.frames[k].frame) not in gone:
             T_gt[i] = g
     has_gt = np.all(np.isfinite(T_gt), axis=(1, 2))
     errors = pose_errors(res.cam_T_needle, T_gt)
@@ -415,6 +425,7 @@ def _evaluate_one(
     lat = res.latency_ms[np.isfinite(res.latency_ms)]
     row["latency_median_ms"] = float(np.median(lat)) if lat.size else float("nan")
     row["latency_p95_ms"] = float(np.percentile(lat, 95)) if lat.size else float("nan")
+    row["gt_left_out_frames"] = int(sum(int(recording.frames[k].frame) in gone for k in idx))
     return ResultEvaluation(
         result=res, recording=recording, method=res.method, variant=variant, label=label, T_gt=T_gt,
         has_gt=has_gt, errors=errors, bimodal=bimodal, assessed=assessed, ashman_d=ashman, labels=labels,
@@ -828,13 +839,21 @@ def evaluate_results(
 
     say("modes")  # before the long computations too: a modes.csv that lacks frames is refused at once
     modes = [modes_of_result(res) for res, _, _, _ in loaded]
+    # ground truth that does not describe its frame (gt_scale): checked before ``out`` exists, as it may refuse
+    say("ground truth scale")
+    recs = {rec.root: rec for _, rec, _, _ in loaded}
+    frames_of: dict[Path, set[int]] = {root: set() for root in recs}
+    for res, rec, _, _ in loaded:
+        frames_of[rec.root].update(int(f) for f in res.frame)
+    left_out = {root: left_out_frames(rec, frames_of[root]) for root, rec in recs.items()}
     # created only now that every input has been read: a refused one leaves no empty ``out`` behind
     out = prepare_output_dir(out, True, "evaluation")
 
     # ΔNLL labels and floor: once per (recording, likelihood), on the union of the frames needed
     needed: dict[tuple, set[int]] = {}
-    for res, _, _, key in loaded:
-        needed.setdefault(key, set()).update(int(f) for f in res.frame)
+    for res, rec, _, key in loaded:
+        gone = {int(r.frame) for r, _ in left_out[rec.root]}
+        needed.setdefault(key, set()).update(int(f) for f in res.frame if int(f) not in gone)
     analyses: dict[tuple, RecordingAmbiguity] = {}
     for _, rec, model, key in loaded:
         if key not in analyses:
@@ -862,7 +881,8 @@ def evaluate_results(
         if names[str(tag)] > 1:
             label += f" #{names[str(tag)]}"
         say(f"metrics: {label} on {rec.info.name}")
-        evals.append(_evaluate_one(res, rec, analyses[key], variant, label, res_modes, refs.get(rec.info.name)))
+        evals.append(_evaluate_one(res, rec, analyses[key], variant, label, res_modes, refs.get(rec.info.name),
+                                   {int(r.frame) for r, _ in left_out[rec.root]}))
 
     text_scaled = ""
     if any(k is not None for k in kappas):
@@ -887,6 +907,9 @@ def evaluate_results(
         say("figures")
         files += _figures(evals, out)
     text = comparison_text(evals) + text_scaled + partial_text(evals, [(res, rec) for res, rec, _, _ in loaded])
+    notes = [left_out_note(recs[root], gone, " of the scores") for root, gone in left_out.items() if gone]
+    if notes:
+        text += "\n\n" + "\n".join(notes)
     return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)
 
 

@@ -17,9 +17,13 @@ hypothesis ``(N, d)`` and one covariance ``(d, d)``, which every hypothesis shar
 not depend on the residuals, only on the frame times. The frame's kinematic term is then the filter's innovation
 ``r_k - a b_hat`` with covariance ``S = P^- + f C``. The sum of the innovations' NLLs is the exact log-likelihood of
 the residual sequence (the prediction-error decomposition, :func:`sequence_nll`). With ``f = 1`` the bias is zero,
-``S = C``, and every quantity is the white model's.
+``S = C``, and every quantity is the white model's. ``scripts/kinematic_bias_evidence.py`` scores trajectories
+with it.
 
-Not yet wired into the trackers (README, issue 9): this module scores trajectories for the diagnosis.
+:class:`BiasBook` turns a tracker's evidence (the white count of the kinematic terms) into this model's, frame by
+frame, with each hypothesis's pose uncertainty folded in. SVN takes it as an option
+(:attr:`pinpoint_fg.trackers.svn.SvnSettings.kinematic_bias`, off by default: measured in the README, *Kinematic
+bias in the evidence*); the pose fit of every tracker stays the white model's.
 """
 
 from __future__ import annotations
@@ -28,6 +32,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from factors.robust import RobustLoss
+from pinpoint_fg.likelihood import FrameLikelihood
+from pinpoint_fg.stein import floor_hessians
+
+#: The kinematic residual types a bias can be tracked for.
+KINEMATIC_TERMS = ("grasp_position", "grasp_perpendicular")
 
 
 @dataclass(frozen=True)
@@ -38,8 +49,15 @@ class BiasModel:
     """Time constant of the Ornstein-Uhlenbeck bias, seconds (the simulator's ``kin_bias_tau_s``)."""
     white_share: float = 0.01
     """Share ``f`` of the residual's variance that is white (the simulator's ``kin_white_var_fraction``); 1: no bias."""
+    terms: tuple[str, ...] = ("grasp_position", "grasp_perpendicular")
+    """The kinematic residual types the bias is modelled for (:class:`BiasBook`; the others stay white)."""
 
     def __post_init__(self) -> None:
+        terms = tuple(self.terms)
+        unknown = [t for t in terms if t not in KINEMATIC_TERMS]
+        if unknown or len(set(terms)) != len(terms):
+            raise ValueError(f"terms must be distinct names among {KINEMATIC_TERMS}, got {self.terms!r}")
+        object.__setattr__(self, "terms", terms)
         if not (math.isfinite(self.tau_s) and self.tau_s > 0.0):
             raise ValueError(f"tau_s must be finite and > 0, got {self.tau_s!r}")
         if not (0.0 < self.white_share <= 1.0):
@@ -123,3 +141,113 @@ def sequence_nll(residuals: np.ndarray, times_s: np.ndarray, noise_cov: np.ndarr
         total += gaussian_nll(rk - filt.mean, filt.innovation_cov(C, model))
         filt = filt.update(rk, C, model)
     return total
+
+
+@dataclass
+class BiasBook:
+    """Per-hypothesis bias filters of the kinematic terms, and the evidence correction they give (issue 9).
+
+    The trackers' evidence (a hypothesis's accumulated marginal likelihood) counts each frame's kinematic terms as
+    independent, ``r_k ~ N(0, C)`` per frame. Under :class:`BiasModel` the same residual sequence is scored by the
+    bias filter's prediction errors instead, so one persistent offset is paid about once per ``tau``, not once per
+    frame. A hypothesis's pose at frame ``k`` is itself uncertain (covariance ``Sigma``, what the frame's other terms
+    and the window prior say: the *cavity* of the kinematic terms), so both scores are predictive, of
+    ``r_k`` linearised as ``r + J d``, ``d ~ N(0, Sigma)``:
+
+    * white: ``rho(|r|_{C + J Sigma J^T}) + 1/2 log det(C + J Sigma J^T)``;
+    * bias: ``rho(|r - b|_{S + J Sigma J^T}) + 1/2 log det(S + J Sigma J^T)``, ``S = P^- + f C`` the filter's
+      innovation covariance (``|x|_M = sqrt(x^T M^-1 x)``, ``rho`` the term's robust loss).
+
+    :meth:`correct` returns the second minus the first, per hypothesis: added to the evidence it turns the white
+    model's count into the bias model's. Without ``J Sigma J^T`` a pose estimate that jitters by a degree between
+    frames (the filter's ``S`` is ~0.03 C at 30 Hz with tau = 5 s) would look like a kinematic surprise. The filters
+    are then updated with ``r`` as a measurement of ``b`` with noise ``f C + J Sigma J^T``; each hypothesis has its
+    own covariance since its ``Sigma`` is its own. The pose fit is not changed.
+    """
+
+    model: BiasModel
+    """The bias model of every kinematic term."""
+    means: dict[str, np.ndarray]
+    """Per term the predicted bias of every hypothesis ``(N, d)``."""
+    covs: dict[str, np.ndarray]
+    """Per term the covariance of that prediction ``(N, d, d)``."""
+    noise: dict[str, np.ndarray]
+    """Per term its noise covariance ``C`` ``(d, d)`` (as first seen)."""
+    t_s: float | None = None
+    """Time of the last frame the filters were brought to (None: none yet)."""
+
+    @classmethod
+    def start(cls, model: BiasModel) -> BiasBook:
+        """An empty book: every term's filter starts stationary, ``N(0, (1 - f) C)``, at its first frame."""
+        return cls(model, {}, {}, {})
+
+    def rows(self, index: np.ndarray | list[int]) -> BiasBook:
+        """The book of hypotheses ``index`` (copies)."""
+        index = np.asarray(index)
+        return BiasBook(self.model, {k: m[index].copy() for k, m in self.means.items()},
+                        {k: c[index].copy() for k, c in self.covs.items()}, dict(self.noise), self.t_s)
+
+    def set_rows(self, index: np.ndarray | list[int], source: BiasBook, source_index: np.ndarray | list[int]) -> None:
+        """Hypotheses ``index`` take ``source``'s filters of ``source_index``."""
+        index, source_index = np.asarray(index), np.asarray(source_index)
+        for k in self.means:
+            if k in source.means:
+                self.means[k][index] = source.means[k][source_index]
+                self.covs[k][index] = source.covs[k][source_index]
+
+    def correct(self, terms: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, RobustLoss]], pose_cov: np.ndarray,
+                t_s: float) -> np.ndarray | None:
+        """Evidence correction ``(N,)`` of one frame (class docstring), the filters updated; None without terms.
+
+        ``terms``: per present kinematic term ``(r - mean (N, d), its Jacobian (N, d, 6), C (d, d), RobustLoss)`` at
+        each hypothesis's pose; ``pose_cov`` ``(N, 6, 6)``: each pose's covariance without the kinematic terms.
+        """
+        f = self.model.white_share
+        if self.t_s is not None:
+            a = self.model.decay(max(0.0, float(t_s) - self.t_s))
+            for k in self.means:
+                self.means[k] = a * self.means[k]
+                self.covs[k] = a * a * self.covs[k] + (1.0 - a * a) * (1.0 - f) * self.noise[k]
+        self.t_s = float(t_s)
+        total = None
+        for k, (r, J, C, loss) in terms.items():
+            r = np.asarray(r, dtype=float)
+            n, d = r.shape
+            C = self.noise.setdefault(k, np.atleast_2d(np.asarray(C, dtype=float)))
+            if k not in self.means:  # the term's first frame: the stationary law
+                self.means[k] = np.zeros((n, d))
+                self.covs[k] = np.broadcast_to((1.0 - f) * C, (n, d, d)).copy()
+            A = J @ pose_cov @ np.swapaxes(J, 1, 2)
+            P = self.covs[k]
+            S = P + f * C + A
+            W = C + A
+            nu = r - self.means[k]
+            d_s = _mahalanobis(nu, S)
+            d_w = _mahalanobis(r, W)
+            term = (loss.loss(d_s) + 0.5 * np.linalg.slogdet(S)[1]) - (loss.loss(d_w) + 0.5 * np.linalg.slogdet(W)[1])
+            total = term if total is None else total + term
+            gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(P, 1, 2)), 1, 2)  # P S^-1
+            self.means[k] = self.means[k] + np.einsum("nij,nj->ni", gain, nu)
+            cov = P - gain @ P
+            self.covs[k] = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        return total
+
+
+def _mahalanobis(x: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``sqrt(x^T M^-1 x)`` per row of ``x (N, d)`` with ``M (N, d, d)``."""
+    return np.sqrt(np.maximum(np.einsum("ni,ni->n", x, np.linalg.solve(M, x[:, :, None])[:, :, 0]), 0.0))
+
+
+def kinematic_correction(book: BiasBook, frame: FrameLikelihood, cam_T_needle: np.ndarray,
+                         information: np.ndarray) -> np.ndarray | None:
+    """:meth:`BiasBook.correct` of one frame at poses ``(N, 4, 4)`` whose Gauss-Newton information of everything
+    counted so far (the frame's terms, the window prior) is ``information (N, 6, 6)``; the kinematic terms' own share
+    is taken out of it for the cavity. None when the frame has no kinematic term the model covers."""
+    names = tuple(k for k in KINEMATIC_TERMS if k in frame.term_names and k in book.model.terms)
+    if not names:
+        book.correct({}, np.zeros((0, 6, 6)), frame.observation.t_s)
+        return None
+    parts = frame.kinematic_terms(cam_T_needle, names)
+    H = np.asarray(information, dtype=float) - sum(p[4] for p in parts.values())
+    _, pose_cov = floor_hessians(H, eps=1e-9)
+    return book.correct({k: p[:4] for k, p in parts.items()}, pose_cov, frame.observation.t_s)

@@ -307,6 +307,22 @@ class FrameLikelihood:
         return {name: self._raw(name, data, T, False)[0] - self._noise[name].mean
                 for name, data in self._terms}
 
+    def kinematic_terms(self, cam_T_needle: np.ndarray, names: tuple[str, ...]) -> dict[str, tuple]:
+        """Per term of ``names`` present this frame: ``r - mean (N, d)``, its Jacobian ``(N, d, 6)`` (right chart),
+        the noise covariance ``C (d, d)``, the robust loss, and the term's share ``J^T W^T w W J (N, 6, 6)`` of
+        :meth:`gauss_newton`'s information (``w`` its IRLS weight at these poses). For
+        :func:`pinpoint_fg.kinematic_bias.kinematic_correction`."""
+        T = res.as_pose_batch(cam_T_needle)
+        out = {}
+        for name, data in self._terms:
+            if name not in names:
+                continue
+            r, J = self._raw(name, data, T)
+            _, _, Jw = self._robust(name, *self._whiten(name, r, J))  # W @ J: a new array, J is kept
+            out[name] = (r - self._noise[name].mean, J, self._noise[name].cov, self._loss[name],
+                         np.swapaxes(Jw, 1, 2) @ Jw)
+        return out
+
     def loss_at_rms(self, rms_sigma: float) -> float:
         """``nll`` of residuals whose blocks are all ``rms_sigma`` standard deviations per dimension off.
 

@@ -61,6 +61,7 @@ from pinpoint_fg.elimination import (
     whiten_motion,
     whiten_prior,
 )
+from pinpoint_fg.kinematic_bias import BiasBook, BiasModel, kinematic_correction
 from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
 from pinpoint_fg.relinearize import ChainAnchor, anchored_linearization
 from pinpoint_fg.window_memo import OldestTermsMemo
@@ -85,7 +86,7 @@ class Window:
     """The sliding windows of all hypotheses (see module docstring)."""
 
     def __init__(self, length: int, process_cov: np.ndarray, forgetting: float = 0.9,
-                 relin_threshold: float = DEFAULT_RELIN_THRESHOLD) -> None:
+                 relin_threshold: float = DEFAULT_RELIN_THRESHOLD, kinematic_bias: BiasModel | None = None) -> None:
         """``process_cov``: per-frame covariance ``Q`` (6x6, ``[omega; v]``) of the motion residual.
 
         ``relin_threshold``: the Gauss-Newton model of the terms among the older poses (their frames, the
@@ -100,6 +101,8 @@ class Window:
         if not (np.isfinite(relin_threshold) and relin_threshold >= 0.0):
             raise ValueError(f"relin_threshold must be finite and >= 0, got {relin_threshold}")
         self.relin_threshold = float(relin_threshold)
+        self.kinematic_bias = kinematic_bias
+        self.kin: BiasBook | None = None  # per-hypothesis kinematic bias filters (evidence correction)
         self._anchor = ChainAnchor()
         self._memo = OldestTermsMemo()
         self.length = int(length)
@@ -144,6 +147,7 @@ class Window:
         self.evidence = np.zeros(T.shape[0])
         W = np.diag(1.0 / np.asarray(prior_sigma, dtype=float))
         self.prior_W = np.broadcast_to(W, (T.shape[0], 6, 6)).copy()
+        self.kin = None if self.kinematic_bias is None else BiasBook.start(self.kinematic_bias)
         self._anchor.clear()
 
     def reset_newest(self, cam_T_needle: np.ndarray, prior_sigma: np.ndarray) -> None:
@@ -296,6 +300,10 @@ class Window:
         v0, g0, H0 = self._unary(0, self.poses[0])
         r, Jp, Jc = res.motion_residual(self.poses[0], self.poses[1], self.deltas[0])
         c, d_star, Hn = marginal_prior(v0, g0, H0, whiten_motion(r, Jp, Jc, self.delta_W[0]))
+        if self.kin is not None:  # the kinematic terms' count under the bias model (kinematic_bias.BiasBook)
+            corr = kinematic_correction(self.kin, self.frames[0], self.poses[0], H0)
+            if corr is not None:
+                c = c + corr
         self.evidence = self.forgetting * self.evidence + c
         self.prior_mean = self.poses[1] @ se3_exp(d_star)
         self.prior_W = np.swapaxes(np.linalg.cholesky(Hn), 1, 2)  # Hn is floored already: W^T W = Hn

@@ -26,6 +26,7 @@ class Rows(Protocol):
     prior_mean: np.ndarray | None
     prior_W: np.ndarray | None
     evidence: np.ndarray | None
+    kin: object
     frames: list
     deltas: list
     delta_W: list
@@ -51,6 +52,7 @@ def subset(window: Window, index: np.ndarray | list[int]) -> Window:
     sub.prior_mean = window.prior_mean[index].copy()
     sub.prior_W = window.prior_W[index].copy()
     sub.evidence = None if window.evidence is None else window.evidence[index].copy()
+    sub.kin = None if window.kin is None else window.kin.rows(index)
     sub.frames, sub.deltas, sub.delta_W = list(window.frames), list(window.deltas), list(window.delta_W)
     sub._memo = OldestTermsMemo()
     sub._anchor = window._anchor.subset(index)
@@ -89,6 +91,8 @@ def resample(window: Window, index: np.ndarray) -> None:
     window.prior_W = window.prior_W[index]
     if window.evidence is not None:
         window.evidence = window.evidence[index]
+    if window.kin is not None:
+        window.kin = window.kin.rows(index)
     window._anchor = window._anchor.subset(index)
     if valid:
         window._memo.reindexed(window._prior_key(window.poses[0]), index)
@@ -108,6 +112,8 @@ def copy_hypotheses(window: Window, index: np.ndarray | list[int], source: Windo
     window.prior_mean[index] = source.prior_mean[source_index]
     window.prior_W[index] = source.prior_W[source_index]
     window.evidence[index] = source.evidence[source_index]
+    if window.kin is not None and source.kin is not None:
+        window.kin.set_rows(index, source.kin, source_index)
     window._memo.clear()
     window._anchor.copy_rows(index, source._anchor, source_index)
 
@@ -131,6 +137,8 @@ def share_books(window: Window, index: np.ndarray | list[int], source_index: np.
     window.prior_mean[index] = window.prior_mean[source_index]
     window.prior_W[index] = window.prior_W[source_index]
     window.evidence[index] = window.evidence[source_index]
+    if window.kin is not None:
+        window.kin.set_rows(index, window.kin.rows(source_index), np.arange(index.size))
     # the older part's anchored model holds the prior: its share is swapped, the frames' terms are kept
     new_prior = (window.prior_mean[index], window.prior_W[index])
     window._anchor.replace_prior(window.frames[:-1], index, old_prior, new_prior)

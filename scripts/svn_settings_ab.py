@@ -29,6 +29,7 @@ import numpy as np
 from pinpoint_fg.eval.metrics import pose_errors
 from pinpoint_fg.eval.modes import near_truth
 from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.kinematic_bias import BiasModel
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.posterior.summary import bimodal_from_modes, modes_of_estimate
 from pinpoint_fg.track import suggested_disable, tracker_config
@@ -46,6 +47,8 @@ def _with(field: str, value: object) -> SvnSettings:
     if not isinstance(values, list) or len(values) != len(names):
         raise SystemExit(f"{field}: give a JSON list of {len(names)} values, got {value!r}")
     top = {n: v for n, v in zip(names, values, strict=True) if not n.startswith("modes.")}
+    if isinstance(top.get("kinematic_bias"), dict):  # {"tau_s": 5, "white_share": 0.01}
+        top["kinematic_bias"] = BiasModel(**top["kinematic_bias"])
     modes = {n.removeprefix("modes."): v for n, v in zip(names, values, strict=True) if n.startswith("modes.")}
     return dataclasses.replace(SvnSettings(), modes=dataclasses.replace(ModeSettings(), **modes), **top)
 

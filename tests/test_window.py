@@ -264,3 +264,39 @@ def test_move_newest_with_the_accepted_trial_is_bitwise_the_retraction() -> None
     assert np.array_equal(w.poses, ref) and w.poses.shape == (1, 12, 4, 4)
     trial[:] = 0.0  # the window holds its own copy
     assert np.array_equal(w.poses, ref)
+
+
+def test_kinematic_bias_books_follow_the_hypotheses_through_every_row_operation() -> None:
+    """With a bias model the window keeps one filter row per hypothesis (:class:`~pinpoint_fg.kinematic_bias.BiasBook`,
+    updated at each marginalisation), and subsets, resampling, copies and shared books move those rows with the
+    evidence they belong to."""
+    from pinpoint_fg.kinematic_bias import BiasModel
+    from pinpoint_fg.window_rows import copy_hypotheses, share_books
+
+    rng = np.random.default_rng(11)
+    noise = NoiseConfig()
+    N = 6
+    w = Window(1, noise.process_cov, forgetting=1.0, kinematic_bias=BiasModel(5.0, 0.3))
+    obs = [_observation(k, rng) for k in range(5)]
+    w.start(_truth(0) @ se3_exp(rng.normal(size=(N, 6)) * np.r_[[0.05] * 3, [1e-3] * 3]),
+            FrameLikelihood(obs[0], MODEL), np.r_[[0.3] * 3, [0.01] * 3])
+    for k in range(1, 5):
+        w.push(FrameLikelihood(obs[k], MODEL), obs[k].cam_T_grasper @ se3_inverse(obs[k - 1].cam_T_grasper), True)
+    means = {k: m.copy() for k, m in w.kin.means.items()}
+    assert set(means) == {"grasp_position", "grasp_perpendicular"} and w.kin.t_s == obs[3].t_s
+    assert all(len(np.unique(m, axis=0)) == N for m in means.values())  # every hypothesis its own bias
+
+    def rows_of(book, index):
+        return {k: m[index] for k, m in book.means.items()}
+
+    sub = w.subset([4, 1])
+    for k, m in rows_of(sub.kin, slice(None)).items():
+        np.testing.assert_array_equal(m, means[k][[4, 1]])
+    copy_hypotheses(w, [0], sub, [0])  # hypothesis 0 becomes a copy of 4
+    share_books(w, np.array([2]), np.array([5]))  # 2 takes 5's books
+    for k, m in w.kin.means.items():
+        np.testing.assert_array_equal(m[[0, 2]], means[k][[4, 5]])
+    np.testing.assert_array_equal(w.evidence[[0, 2]], w.evidence[[4, 5]])
+    w.resample(np.array([3, 3, 1, 0, 2, 5]))
+    for k, m in w.kin.means.items():
+        np.testing.assert_array_equal(m, means[k][[3, 3, 1, 4, 5, 5]])

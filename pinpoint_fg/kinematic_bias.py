@@ -159,10 +159,11 @@ class BiasBook:
       innovation covariance (``|x|_M = sqrt(x^T M^-1 x)``, ``rho`` the term's robust loss).
 
     :meth:`correct` returns the second minus the first, per hypothesis: added to the evidence it turns the white
-    model's count into the bias model's. Without ``J Sigma J^T`` a pose estimate that jitters by a degree between
-    frames (the filter's ``S`` is ~0.03 C at 30 Hz with tau = 5 s) would look like a kinematic surprise. The filters
-    are then updated with ``r`` as a measurement of ``b`` with noise ``f C + J Sigma J^T``; each hypothesis has its
-    own covariance since its ``Sigma`` is its own. The pose fit is not changed.
+    model's count into the bias model's. ``J Sigma J^T`` is what makes the scores predictive; in practice the white
+    share ``f`` matters more, since ``S >= f C`` bounds how much a pose estimate's frame-to-frame jitter (a few
+    degrees) is scored as a kinematic surprise (README, *Kinematic bias in the evidence*). The filters are then
+    updated with ``r`` as a measurement of ``b`` with noise ``f C + J Sigma J^T``; each hypothesis has its own
+    covariance since its ``Sigma`` is its own. The pose fit is not changed.
     """
 
     model: BiasModel

@@ -4,7 +4,9 @@ Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_s
 RUN [RUN ...]`` (e.g. ``floor_each true false /tmp/runs/normal-01``; FIELD is an
 :class:`~pinpoint_fg.trackers.svn.SvnSettings` field, or ``modes.NAME`` for a
 :class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one; the values are parsed as JSON: ``true``, ``2``, ``0.5``;
-several fields comma-separated with JSON lists of values: ``modes.polish_iters,modes.max_candidates [8,6] [30,19]``).
+several fields comma-separated with JSON lists of values: ``modes.polish_iters,modes.max_candidates [8,6] [30,19]``;
+``kinematic_bias`` takes ``null`` or a :class:`~pinpoint_fg.kinematic_bias.BiasModel` as a JSON object,
+``'{"tau_s": 5, "white_share": 0.3}'``).
 
 Both trackers are stepped in turn on every frame (lock-step, one thread: load on the machine hits both alike),
 with the run's suggested switches (``track``'s own). Prints per run the median thread-CPU milliseconds per frame
@@ -47,7 +49,7 @@ def _with(field: str, value: object) -> SvnSettings:
     if not isinstance(values, list) or len(values) != len(names):
         raise SystemExit(f"{field}: give a JSON list of {len(names)} values, got {value!r}")
     top = {n: v for n, v in zip(names, values, strict=True) if not n.startswith("modes.")}
-    if isinstance(top.get("kinematic_bias"), dict):  # {"tau_s": 5, "white_share": 0.01}
+    if isinstance(top.get("kinematic_bias"), dict):  # {"tau_s": 5, "white_share": 0.3}
         top["kinematic_bias"] = BiasModel(**top["kinematic_bias"])
     modes = {n.removeprefix("modes."): v for n, v in zip(names, values, strict=True) if n.startswith("modes.")}
     return dataclasses.replace(SvnSettings(), modes=dataclasses.replace(ModeSettings(), **modes), **top)

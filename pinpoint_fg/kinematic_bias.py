@@ -49,7 +49,7 @@ class BiasModel:
     """Time constant of the Ornstein-Uhlenbeck bias, seconds (the simulator's ``kin_bias_tau_s``)."""
     white_share: float = 0.01
     """Share ``f`` of the residual's variance that is white (the simulator's ``kin_white_var_fraction``); 1: no bias."""
-    terms: tuple[str, ...] = ("grasp_position", "grasp_perpendicular")
+    terms: tuple[str, ...] = KINEMATIC_TERMS
     """The kinematic residual types the bias is modelled for (:class:`BiasBook`; the others stay white)."""
 
     def __post_init__(self) -> None:
@@ -72,16 +72,19 @@ class BiasModel:
 
 @dataclass(frozen=True)
 class BiasFilter:
-    """The bias estimate of ``N`` hypotheses for one residual type: ``mean (N, d)`` and the shared ``cov (d, d)``.
+    """The bias estimate of ``N`` hypotheses for one residual type: ``mean (N, d)`` and its covariance, ``(d, d)``
+    shared by every hypothesis or ``(N, d, d)`` one each.
 
     Both are the estimate *before* the next frame's residual (after :meth:`predict`). ``noise_cov`` (the residual's
     ``C``) and ``model`` are passed to each call rather than kept, so one filter can be scored under several.
+    ``extra`` (``(d, d)`` or ``(N, d, d)``, default none) is measurement noise beyond the white ``f C``: the residual's
+    spread from the pose's own uncertainty (:class:`BiasBook`); with it the covariance becomes one per hypothesis.
     """
 
     mean: np.ndarray
     """Predicted bias of every hypothesis, ``(N, d)``, in the residual's units."""
     cov: np.ndarray
-    """Covariance of the predicted bias, ``(d, d)``, the same for every hypothesis."""
+    """Covariance of the predicted bias, ``(d, d)`` (shared) or ``(N, d, d)``."""
 
     @classmethod
     def stationary(cls, n: int, noise_cov: np.ndarray, model: BiasModel) -> BiasFilter:
@@ -89,17 +92,19 @@ class BiasFilter:
         C = np.atleast_2d(np.asarray(noise_cov, dtype=float))
         return cls(np.zeros((n, C.shape[0])), (1.0 - model.white_share) * C)
 
-    def innovation_cov(self, noise_cov: np.ndarray, model: BiasModel) -> np.ndarray:
-        """``S = P^- + f C`` ``(d, d)``: the covariance of the next residual about :attr:`mean`."""
-        return self.cov + model.white_share * np.atleast_2d(np.asarray(noise_cov, dtype=float))
+    def innovation_cov(self, noise_cov: np.ndarray, model: BiasModel, extra: np.ndarray | float = 0.0) -> np.ndarray:
+        """``S = P^- + f C (+ extra)``: the covariance of the next residual about :attr:`mean`."""
+        return self.cov + model.white_share * np.atleast_2d(np.asarray(noise_cov, dtype=float)) + extra
 
-    def update(self, residual: np.ndarray, noise_cov: np.ndarray, model: BiasModel) -> BiasFilter:
+    def update(self, residual: np.ndarray, noise_cov: np.ndarray, model: BiasModel,
+               extra: np.ndarray | float = 0.0) -> BiasFilter:
         """The estimate after each hypothesis's residual ``(N, d)`` of this frame (at its final pose)."""
-        S = self.innovation_cov(noise_cov, model)
-        gain = np.linalg.solve(S, self.cov).T  # P S^-1 (P and S symmetric)
-        mean = self.mean + (np.asarray(residual, dtype=float) - self.mean) @ gain.T
-        cov = self.cov - gain @ self.cov
-        return BiasFilter(mean, 0.5 * (cov + cov.T))
+        S = self.innovation_cov(noise_cov, model, extra)
+        P = self.cov
+        gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(P, -1, -2)), -1, -2)  # P S^-1
+        nu = np.asarray(residual, dtype=float) - self.mean
+        cov = P - gain @ P
+        return BiasFilter(self.mean + np.einsum("...ij,...j->...i", gain, nu), 0.5 * (cov + np.swapaxes(cov, -1, -2)))
 
     def predict(self, dt_s: float, noise_cov: np.ndarray, model: BiasModel) -> BiasFilter:
         """The estimate ``dt_s`` seconds later: ``a`` times the mean, ``a^2 P + (1 - a^2)(1 - f) C``."""
@@ -108,8 +113,9 @@ class BiasFilter:
         return BiasFilter(a * self.mean, a * a * self.cov + (1.0 - a * a) * (1.0 - model.white_share) * C)
 
     def rows(self, index: np.ndarray | list[int]) -> BiasFilter:
-        """The filter of hypotheses ``index`` (copies; the covariance is shared)."""
-        return BiasFilter(self.mean[np.asarray(index)].copy(), self.cov.copy())
+        """The filter of hypotheses ``index`` (copies; a shared covariance stays shared)."""
+        index = np.asarray(index)
+        return BiasFilter(self.mean[index].copy(), self.cov[index].copy() if self.cov.ndim == 3 else self.cov.copy())
 
 
 def gaussian_nll(nu: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -161,17 +167,15 @@ class BiasBook:
     :meth:`correct` returns the second minus the first, per hypothesis: added to the evidence it turns the white
     model's count into the bias model's. ``J Sigma J^T`` is what makes the scores predictive; in practice the white
     share ``f`` matters more, since ``S >= f C`` bounds how much a pose estimate's frame-to-frame jitter (a few
-    degrees) is scored as a kinematic surprise (README, *Kinematic bias in the evidence*). The filters are then
-    updated with ``r`` as a measurement of ``b`` with noise ``f C + J Sigma J^T``; each hypothesis has its own
-    covariance since its ``Sigma`` is its own. The pose fit is not changed.
+    degrees) is scored as a kinematic surprise (README, *Kinematic bias in the evidence*). The filters
+    (:class:`BiasFilter`) are then updated with ``r`` as a measurement of ``b`` with noise ``f C + J Sigma J^T``, so
+    each hypothesis has its own covariance. The pose fit is not changed.
     """
 
     model: BiasModel
     """The bias model of every kinematic term."""
-    means: dict[str, np.ndarray]
-    """Per term the predicted bias of every hypothesis ``(N, d)``."""
-    covs: dict[str, np.ndarray]
-    """Per term the covariance of that prediction ``(N, d, d)``."""
+    filters: dict[str, BiasFilter]
+    """Per term its filters, from the term's first frame on."""
     noise: dict[str, np.ndarray]
     """Per term its noise covariance ``C`` ``(d, d)`` (as first seen)."""
     t_s: float | None = None
@@ -180,21 +184,29 @@ class BiasBook:
     @classmethod
     def start(cls, model: BiasModel) -> BiasBook:
         """An empty book: every term's filter starts stationary, ``N(0, (1 - f) C)``, at its first frame."""
-        return cls(model, {}, {}, {})
+        return cls(model, {}, {})
+
+    @property
+    def means(self) -> dict[str, np.ndarray]:
+        """Per term the predicted bias of every hypothesis ``(N, d)`` (the filters' own arrays)."""
+        return {k: f.mean for k, f in self.filters.items()}
+
+    @property
+    def covs(self) -> dict[str, np.ndarray]:
+        """Per term the covariance of that prediction ``(N, d, d)`` (the filters' own arrays)."""
+        return {k: f.cov for k, f in self.filters.items()}
 
     def rows(self, index: np.ndarray | list[int]) -> BiasBook:
         """The book of hypotheses ``index`` (copies)."""
-        index = np.asarray(index)
-        return BiasBook(self.model, {k: m[index].copy() for k, m in self.means.items()},
-                        {k: c[index].copy() for k, c in self.covs.items()}, dict(self.noise), self.t_s)
+        return BiasBook(self.model, {k: f.rows(index) for k, f in self.filters.items()}, dict(self.noise), self.t_s)
 
     def set_rows(self, index: np.ndarray | list[int], source: BiasBook, source_index: np.ndarray | list[int]) -> None:
-        """Hypotheses ``index`` take ``source``'s filters of ``source_index``."""
+        """Hypotheses ``index`` take ``source``'s filters of ``source_index`` (``source`` may be this book)."""
         index, source_index = np.asarray(index), np.asarray(source_index)
-        for k in self.means:
-            if k in source.means:
-                self.means[k][index] = source.means[k][source_index]
-                self.covs[k][index] = source.covs[k][source_index]
+        for k, f in self.filters.items():
+            if k in source.filters:
+                f.mean[index] = source.filters[k].mean[source_index]
+                f.cov[index] = source.filters[k].cov[source_index]
 
     def correct(self, terms: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, RobustLoss]], pose_cov: np.ndarray,
                 t_s: float) -> np.ndarray | None:
@@ -203,34 +215,25 @@ class BiasBook:
         ``terms``: per present kinematic term ``(r - mean (N, d), its Jacobian (N, d, 6), C (d, d), RobustLoss)`` at
         each hypothesis's pose; ``pose_cov`` ``(N, 6, 6)``: each pose's covariance without the kinematic terms.
         """
-        f = self.model.white_share
         if self.t_s is not None:
-            a = self.model.decay(max(0.0, float(t_s) - self.t_s))
-            for k in self.means:
-                self.means[k] = a * self.means[k]
-                self.covs[k] = a * a * self.covs[k] + (1.0 - a * a) * (1.0 - f) * self.noise[k]
+            dt = max(0.0, float(t_s) - self.t_s)
+            self.filters = {k: f.predict(dt, self.noise[k], self.model) for k, f in self.filters.items()}
         self.t_s = float(t_s)
         total = None
         for k, (r, J, C, loss) in terms.items():
             r = np.asarray(r, dtype=float)
-            n, d = r.shape
             C = self.noise.setdefault(k, np.atleast_2d(np.asarray(C, dtype=float)))
-            if k not in self.means:  # the term's first frame: the stationary law
-                self.means[k] = np.zeros((n, d))
-                self.covs[k] = np.broadcast_to((1.0 - f) * C, (n, d, d)).copy()
+            f = self.filters.get(k)
+            if f is None:  # the term's first frame: the stationary law, one covariance per hypothesis
+                f = BiasFilter.stationary(r.shape[0], C, self.model)
+                f = BiasFilter(f.mean, np.broadcast_to(f.cov, (r.shape[0],) + C.shape).copy())
             A = J @ pose_cov @ np.swapaxes(J, 1, 2)
-            P = self.covs[k]
-            S = P + f * C + A
+            S = f.innovation_cov(C, self.model, A)
             W = C + A
-            nu = r - self.means[k]
-            d_s = _mahalanobis(nu, S)
-            d_w = _mahalanobis(r, W)
-            term = (loss.loss(d_s) + 0.5 * np.linalg.slogdet(S)[1]) - (loss.loss(d_w) + 0.5 * np.linalg.slogdet(W)[1])
+            term = ((loss.loss(_mahalanobis(r - f.mean, S)) + 0.5 * np.linalg.slogdet(S)[1])
+                    - (loss.loss(_mahalanobis(r, W)) + 0.5 * np.linalg.slogdet(W)[1]))
             total = term if total is None else total + term
-            gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(P, 1, 2)), 1, 2)  # P S^-1
-            self.means[k] = self.means[k] + np.einsum("nij,nj->ni", gain, nu)
-            cov = P - gain @ P
-            self.covs[k] = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+            self.filters[k] = f.update(r, C, self.model, A)
         return total
 
 

@@ -138,7 +138,7 @@ def share_books(window: Window, index: np.ndarray | list[int], source_index: np.
     window.prior_W[index] = window.prior_W[source_index]
     window.evidence[index] = window.evidence[source_index]
     if window.kin is not None:
-        window.kin.set_rows(index, window.kin.rows(source_index), np.arange(index.size))
+        window.kin.set_rows(index, window.kin, source_index)
     # the older part's anchored model holds the prior: its share is swapped, the frames' terms are kept
     new_prior = (window.prior_mean[index], window.prior_W[index])
     window._anchor.replace_prior(window.frames[:-1], index, old_prior, new_prior)

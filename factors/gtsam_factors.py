@@ -149,15 +149,19 @@ def _reraise(exc: Exception) -> None:
     raise exc.with_traceback(None)
 
 
-def _unary_residual(
-    fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], dim: int, cam_T_needle: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    r, J = fn(np.asarray(cam_T_needle, dtype=float)[None])
-    return r.reshape(dim), J.reshape(dim, 6)
+#: A one-pose factor's batched function: ``(T (1, 4, 4), jacobian) -> (r (1, dim), J (1, dim, 6) or None)``; with
+#: ``jacobian=False`` it may skip the Jacobian (GTSAM asks for ``error()`` alone, e.g. on every trial step).
+UnaryFn = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 
 
-def _unary_callback(fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], dim: int) -> Callable:
-    """The GTSAM callback of a one-pose factor.
+def _unary_residual(fn: UnaryFn, dim: int, cam_T_needle: np.ndarray, jacobian: bool = True
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
+    r, J = fn(np.asarray(cam_T_needle, dtype=float)[None], jacobian)
+    return r.reshape(dim), (J.reshape(dim, 6) if jacobian else None)
+
+
+def _unary_callback(fn: UnaryFn, dim: int) -> Callable:
+    """The GTSAM callback of a one-pose factor (the Jacobian only built when GTSAM asks for it).
 
     It closes over ``fn`` and ``dim`` only, never over the factor object: the C++ factor owns the
     callback, so a callback holding the Python factor would make a reference cycle through C++
@@ -168,7 +172,7 @@ def _unary_callback(fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], d
     def evaluate(this: gtsam.CustomFactor, values: gtsam.Values, H: object) -> np.ndarray:
         try:
             T = values.atPose3(this.keys()[0]).matrix()
-            r, J = _unary_residual(fn, dim, T)
+            r, J = _unary_residual(fn, dim, T, H is not None)
             if H is not None:
                 H[0] = np.ascontiguousarray(J, dtype=float)
             return np.ascontiguousarray(r, dtype=float)
@@ -180,14 +184,14 @@ def _unary_callback(fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], d
 
 
 class _UnaryPoseFactor(gtsam.CustomFactor):
-    """A one-pose factor whose residual/Jacobian come from a batched function ``T (1,4,4) -> r, J``."""
+    """A one-pose factor whose residual/Jacobian come from a batched function ``(T (1,4,4), jacobian) -> r, J``."""
 
     def __init__(
         self,
         noise: gtsam.noiseModel.Base,
         key: int,
         dim: int,
-        fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+        fn: UnaryFn,
         sigmas: bool = True,
     ) -> None:
         self._fn = fn
@@ -216,7 +220,7 @@ class KeypointFactor(_UnaryPoseFactor):
         K = _camera_K(camera)
         X = _bounded("needle_point_m", as_vector("needle_point_m", needle_point_m, 3), MAX_ABS_M, "m")
         z = _bounded("measured_px", as_vector("measured_px", measured_px, 2), MAX_ABS_PX, "px")
-        super().__init__(noise, key, 2, lambda T: res.keypoint_residual(T, K, X, z))
+        super().__init__(noise, key, 2, lambda T, jacobian: res.keypoint_residual(T, K, X, z, jacobian=jacobian))
 
 
 def _conic_inputs(camera: object, radius_m: float, points_px: np.ndarray, bias: float
@@ -256,8 +260,8 @@ class ConicFactor(_UnaryPoseFactor):
         _check_whitening(whitening, pts.shape[0])
         residual = _conic_distance(distance)
 
-        def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            r, J = residual(T, K, r_m, pts)
+        def fn(T: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+            r, J = residual(T, K, r_m, pts, jacobian=jacobian)
             if whitening is None:
                 return r - b, J
             return whitening.apply(r - b, J)
@@ -318,7 +322,9 @@ class ConicPixelFactor(_UnaryPoseFactor):
             raise ValueError(f"cache must come from conic_pixel_factors, got {type(cache).__name__}")
         i = _whole_index("index", index, cache.count)  # -1 or past the end read no row: "cannot reshape" per error()
 
-        def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def fn(T: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
+            # always with the Jacobian: the cache serves all pixels of a pose, and GTSAM's linearisation
+            # usually follows its error() at the same pose
             r, J = cache(T[0])
             return r[i : i + 1], J[i : i + 1]
 
@@ -363,7 +369,7 @@ class GraspPositionFactor(_UnaryPoseFactor):
     ) -> None:
         X = _bounded("needle_point_m", as_vector("needle_point_m", needle_point_m, 3), MAX_ABS_M, "m")
         p = _bounded("measured_cam_m", as_vector("measured_cam_m", measured_cam_m, 3), MAX_ABS_M, "m")
-        super().__init__(noise, key, 3, lambda T: res.grasp_position_residual(T, X, p))
+        super().__init__(noise, key, 3, lambda T, jacobian: res.grasp_position_residual(T, X, p, jacobian=jacobian))
 
 
 class GraspPerpendicularFactor(_UnaryPoseFactor):
@@ -384,8 +390,8 @@ class GraspPerpendicularFactor(_UnaryPoseFactor):
         z = _direction("grasper_axis_cam", grasper_axis_cam)
         b = _number("bias", bias, MAX_ABS_PX)
 
-        def fn(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            r, J = res.grasp_perpendicular_residual(T, t, z)
+        def fn(T: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+            r, J = res.grasp_perpendicular_residual(T, t, z, jacobian=jacobian)
             return r - b, J
 
         super().__init__(noise, key, 1, fn)
@@ -396,7 +402,7 @@ class PosePriorFactor(_UnaryPoseFactor):
 
     def __init__(self, key: int, cam_T_mean: gtsam.Pose3 | np.ndarray, noise: gtsam.noiseModel.Base) -> None:
         M = _check_pose("cam_T_mean", cam_T_mean).matrix()
-        super().__init__(noise, key, 6, lambda T: res.pose_prior_residual(T, M))
+        super().__init__(noise, key, 6, lambda T, jacobian: res.pose_prior_residual(T, M, jacobian=jacobian))
 
 
 class MotionFactor(gtsam.CustomFactor):
@@ -418,7 +424,8 @@ class MotionFactor(gtsam.CustomFactor):
             # closes over ``delta`` only, not ``self`` (see _unary_callback: no cycle through C++)
             try:
                 keys = this.keys()
-                r, Jp, Jc = _motion_residual(delta, values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix())
+                r, Jp, Jc = _motion_residual(delta, values.atPose3(keys[0]).matrix(), values.atPose3(keys[1]).matrix(),
+                                             H is not None)
                 if H is not None:
                     H[0] = np.ascontiguousarray(Jp, dtype=float)
                     H[1] = np.ascontiguousarray(Jc, dtype=float)
@@ -434,6 +441,7 @@ class MotionFactor(gtsam.CustomFactor):
         return _motion_residual(self._delta, cam_T_prev, cam_T_cur)
 
 
-def _motion_residual(delta: np.ndarray, cam_T_prev: np.ndarray, cam_T_cur: np.ndarray) -> tuple[np.ndarray, ...]:
-    r, Jp, Jc = res.motion_residual(cam_T_prev, cam_T_cur, delta)
-    return r[0], Jp[0], Jc[0]
+def _motion_residual(delta: np.ndarray, cam_T_prev: np.ndarray, cam_T_cur: np.ndarray, jacobian: bool = True
+                     ) -> tuple[np.ndarray, ...]:
+    r, Jp, Jc = res.motion_residual(cam_T_prev, cam_T_cur, delta, jacobian=jacobian)
+    return (r[0], Jp[0], Jc[0]) if jacobian else (r[0], None, None)

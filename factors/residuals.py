@@ -97,12 +97,18 @@ def as_pose_batch(cam_T_needle: np.ndarray) -> np.ndarray:
     return T
 
 
-def point_jacobian(cam_T_needle: np.ndarray, needle_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame point ``p = R X + t`` ``(N, 3)`` and ``dp/dxi = [-R [X]x, R]`` ``(N, 3, 6)``."""
+def point_jacobian(cam_T_needle: np.ndarray, needle_p: np.ndarray, jacobian: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Camera-frame point ``p = R X + t`` ``(N, 3)`` and ``dp/dxi = [-R [X]x, R]`` ``(N, 3, 6)``.
+
+    ``jacobian=False`` returns None for the Jacobian and skips building it; ``p`` is the same bit for bit.
+    """
     T = as_pose_batch(cam_T_needle)
     R, t = T[:, :3, :3], T[:, :3, 3]
     X = np.asarray(needle_p, dtype=float)
     p = R @ X + t
+    if not jacobian:
+        return p, None
     J = np.empty((T.shape[0], 3, 6))  # [-R [X]x, R] filled in place (np.concatenate's result, without its overhead)
     J[:, :, :3] = -R @ _skew_const(X)
     J[:, :, 3:] = R
@@ -110,12 +116,13 @@ def point_jacobian(cam_T_needle: np.ndarray, needle_p: np.ndarray) -> tuple[np.n
 
 
 def keypoint_residual(
-    cam_T_needle: np.ndarray, K: np.ndarray, needle_p: np.ndarray, measured_px: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+    cam_T_needle: np.ndarray, K: np.ndarray, needle_p: np.ndarray, measured_px: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Reprojection residual ``pi(T X) - z`` in pixels (paper Eq. for r_key, appendix A).
 
     ``pi(p) = (fx x/z + cx, fy y/z + cy)`` with the ideal pinhole ``K`` (``measured_px`` must be
-    undistorted). Returns ``r (N, 2)``, ``J (N, 2, 6)``.
+    undistorted). Returns ``r (N, 2)``, ``J (N, 2, 6)`` (None with ``jacobian=False``, which skips building
+    it: what a likelihood-only caller, the particle filter, needs; ``r`` is identical).
 
     Behind the camera (z < 0) the projection is the central mirror image and stays finite; a
     point in the camera plane has its depth clamped to ``±MIN_DEPTH_M``. Trackers reject
@@ -123,7 +130,7 @@ def keypoint_residual(
     """
     K = np.asarray(K, dtype=float)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    p, Jp = point_jacobian(cam_T_needle, needle_p)
+    p, Jp = point_jacobian(cam_T_needle, needle_p, jacobian)
     z = p[:, 2]
     clamp = np.abs(z) < MIN_DEPTH_M
     if clamp.any():
@@ -135,6 +142,8 @@ def keypoint_residual(
     uv[:, 0] = u
     uv[:, 1] = v
     r = uv - np.asarray(measured_px, dtype=float)
+    if Jp is None:
+        return r, None
     Jpi = np.zeros((p.shape[0], 2, 3))
     Jpi[:, 0, 0] = fx * iz
     Jpi[:, 0, 2] = -fx * p[:, 0] * iz * iz
@@ -439,17 +448,19 @@ def _pixel_basis(pts: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.nda
 
 
 def grasp_position_residual(
-    cam_T_needle: np.ndarray, needle_p_grasp: np.ndarray, cam_p_grasp: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Grasp position ``T X_g - p_g`` in metres, camera axes (paper Eq. for r_p). ``(N, 3), (N, 3, 6)``."""
-    p, J = point_jacobian(cam_T_needle, needle_p_grasp)
+    cam_T_needle: np.ndarray, needle_p_grasp: np.ndarray, cam_p_grasp: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Grasp position ``T X_g - p_g`` in metres, camera axes (paper Eq. for r_p). ``(N, 3), (N, 3, 6)``
+    (the Jacobian None with ``jacobian=False``)."""
+    p, J = point_jacobian(cam_T_needle, needle_p_grasp, jacobian)
     return p - np.asarray(cam_p_grasp, dtype=float), J
 
 
 def grasp_perpendicular_residual(
-    cam_T_needle: np.ndarray, needle_t_grasp: np.ndarray, cam_z_grasper: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Grasp perpendicularity ``z_g . (R t_g)`` (unitless; paper Eq. for r_perp). ``(N, 1), (N, 1, 6)``.
+    cam_T_needle: np.ndarray, needle_t_grasp: np.ndarray, cam_z_grasper: np.ndarray, jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Grasp perpendicularity ``z_g . (R t_g)`` (unitless; paper Eq. for r_perp). ``(N, 1), (N, 1, 6)``
+    (the Jacobian None with ``jacobian=False``).
 
     ``t_g`` and ``z_g`` are normalised here, so ``R t_g`` is already unit length and the
     paper's normalisation has zero derivative. ``d(z^T R t) = -z^T R [t]x omega``; translation
@@ -462,6 +473,8 @@ def grasp_perpendicular_residual(
     zg = _unit_const(zg, last_axis=True) if zg.ndim == 1 else zg / np.linalg.norm(zg, axis=-1, keepdims=True)
     R = T[:, :3, :3]
     r = ((R @ tg) * zg).sum(axis=-1)
+    if not jacobian:
+        return r[:, None], None
     J = np.zeros((T.shape[0], 1, 6))  # [Jw, 0] filled in place
     J[:, 0, :3] = -np.einsum("i,nij->nj" if zg.ndim == 1 else "ni,nij->nj", zg, R @ _skew_const(tg))
     return r[:, None], J
@@ -491,11 +504,14 @@ def motion_residual(
     return r, J_prev, J_cur
 
 
-def pose_prior_residual(cam_T_needle: np.ndarray, cam_T_mean: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gaussian pose prior residual ``Log(T_mean^-1 T)`` with exact Jacobian ``Jr^-1(r)``. ``(N, 6), (N, 6, 6)``.
+def pose_prior_residual(cam_T_needle: np.ndarray, cam_T_mean: np.ndarray, jacobian: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Gaussian pose prior residual ``Log(T_mean^-1 T)`` with exact Jacobian ``Jr^-1(r)``. ``(N, 6), (N, 6, 6)``
+    (the Jacobian None with ``jacobian=False``; ``r`` the same bits).
 
     Used for the prior that holds what a sliding window marginalised. (GTSAM's
     ``PriorFactorPose3`` uses an identity Jacobian instead; this one is exact.)
     """
     T = as_pose_batch(cam_T_needle)
-    return se3_log_right_jacobian_inv(se3_inverse(np.asarray(cam_T_mean, dtype=float)) @ T)
+    E = se3_inverse(np.asarray(cam_T_mean, dtype=float)) @ T
+    return se3_log_right_jacobian_inv(E) if jacobian else (se3_log(E), None)

@@ -196,17 +196,18 @@ class FrameLikelihood:
         """True when a keypoint or backbone term is present."""
         return any(n in ("tip", "tail", "conic") for n in self.term_names)
 
-    def _raw(self, name: str, data: object, T: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def _raw(self, name: str, data: object, T: np.ndarray, jacobian: bool = True
+             ) -> tuple[np.ndarray, np.ndarray | None]:
         if name == "tip":
-            return res.keypoint_residual(T, self._K, self._tip, data)
+            return res.keypoint_residual(T, self._K, self._tip, data, jacobian=jacobian)
         if name == "tail":
-            return res.keypoint_residual(T, self._K, self._tail, data)
+            return res.keypoint_residual(T, self._K, self._tail, data, jacobian=jacobian)
         if name == "conic":
             fn = res.conic_geometric_residual if self.model.conic_distance == "geometric" else res.conic_residual
             return fn(T, self._K, self.model.needle.radius_m, data, jacobian=jacobian)
         if name == "grasp_position":
-            return res.grasp_position_residual(T, self._grasp, data)
-        return res.grasp_perpendicular_residual(T, self._tgrasp, data)
+            return res.grasp_position_residual(T, self._grasp, data, jacobian=jacobian)
+        return res.grasp_perpendicular_residual(T, self._tgrasp, data, jacobian=jacobian)
 
     def _whiten(self, name: str, r: np.ndarray, J: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
         """Whitened residual ``W (r - mean)`` and Jacobian ``W J`` of term ``name`` (J None: skipped).

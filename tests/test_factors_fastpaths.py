@@ -312,6 +312,31 @@ def test_point_and_small_residuals_filled_in_place_equal_their_concatenated_form
         np.testing.assert_array_equal(Jc, se3_right_jacobian_inv(r0))
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_small_residuals_without_jacobian_are_bitwise_the_same_residuals(kind: str) -> None:
+    """``jacobian=False`` (the particle filter's likelihood-only path) skips the Jacobian and returns None for it;
+    the residual is bit for bit the one computed with it, and so is every likelihood built on them."""
+    rng = np.random.default_rng(16)
+    for n in (1, 7, 60):
+        T = sample_poses(kind, n, rng)
+        for X in (NEEDLE.tip_m, NEEDLE.grasp_m):
+            p, none = res.point_jacobian(T, X, jacobian=False)
+            assert none is None
+            np.testing.assert_array_equal(p, res.point_jacobian(T, X)[0])
+            z = rng.uniform(0, 1080, size=2)
+            r, none = res.keypoint_residual(T, CAM.K, X, z, jacobian=False)
+            assert none is None
+            np.testing.assert_array_equal(r, res.keypoint_residual(T, CAM.K, X, z)[0])
+        pg = rng.normal(size=3) * 0.02
+        r, none = res.grasp_position_residual(T, NEEDLE.grasp_m, pg, jacobian=False)
+        assert none is None
+        np.testing.assert_array_equal(r, res.grasp_position_residual(T, NEEDLE.grasp_m, pg)[0])
+        for zg in (rng.normal(size=3), rng.normal(size=(n, 3))):
+            r, none = res.grasp_perpendicular_residual(T, NEEDLE.grasp_tangent, zg, jacobian=False)
+            assert none is None
+            np.testing.assert_array_equal(r, res.grasp_perpendicular_residual(T, NEEDLE.grasp_tangent, zg)[0])
+
+
 def test_conic_residual_is_bitwise_its_earlier_form() -> None:
     """conic_residual with its constants built once (Q, skew(e_k)) and dh/dxi filled in place: the same bits as
     the per-call construction (its whole earlier body, restated here as the reference)."""

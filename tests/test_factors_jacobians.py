@@ -90,6 +90,8 @@ def test_unary_factor_jacobians(name: str, kind: str) -> None:
         v = gtsam.Values()
         v.insert(0, matrix_to_pose3(T))
         A, b = f.linearize(v).jacobian()  # whitened with sigma = 1: A = J, b = -r
+        # GTSAM's error-only call (no Jacobian built) gives the bits of the residual computed with it
+        np.testing.assert_array_equal(f.unwhitenedError(v), f.residual(v.atPose3(0).matrix())[0])
 
         def h(P: gtsam.Pose3, f=f) -> np.ndarray:
             vv = gtsam.Values()
@@ -124,6 +126,7 @@ def test_motion_factor_jacobians(kind: str) -> None:
         v.insert(0, matrix_to_pose3(Tp))
         v.insert(1, matrix_to_pose3(Tc))
         A, _ = f.linearize(v).jacobian()
+        np.testing.assert_array_equal(f.unwhitenedError(v), f.residual(v.atPose3(0).matrix(), v.atPose3(1).matrix())[0])
         for k in (0, 1):
 
             def h(P: gtsam.Pose3, k=k, v=v, f=f) -> np.ndarray:

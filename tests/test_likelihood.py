@@ -79,6 +79,13 @@ def test_term_losses_are_the_parts_of_the_robust_loss_and_each_matches_its_gtsam
         assert v.shape == (8,)
         total += v
     np.testing.assert_array_equal(total, lik.irls(poses, jacobian=False)[0])
+    # the likelihood-only path (no Jacobian built for any term) gives the loss and rows of the full one, bitwise
+    loss, e, none = lik.irls(poses, jacobian=False)
+    full = lik.irls(poses)
+    assert none is None
+    np.testing.assert_array_equal(loss, full[0])
+    np.testing.assert_array_equal(e, full[1])
+    np.testing.assert_array_equal(lik.nll(poses), full[0] + lik.cheirality(poses)[0])
     fs = lik.gtsam_factors(0)  # tip, tail, one robust factor per conic pixel, grasp position, perpendicularity
     assert len(fs) == 4 + 30
     groups = {"tip": fs[:1], "tail": fs[1:2], "conic": fs[2:-2], "grasp_position": fs[-2:-1],

@@ -114,6 +114,9 @@ def test_robust_lowers_the_nll_and_reaches_pf_weights_and_implausibility() -> No
     assert np.all(rob.nll(poses) < plain.nll(poses))
     # the particle filter's log-weights are minus this nll
     np.testing.assert_array_equal(batched_nll(rob, poses, chunk=7), rob.nll(poses))
+    many = T0 @ se3_exp(rng.normal(size=(7000, 6)) * np.r_[[0.05] * 3, [5e-4] * 3])
+    # default batches: NLL_BATCH_ENTRIES residual entries (here 2631 rows of 38 entries: three batches)
+    np.testing.assert_allclose(batched_nll(rob, many), batched_nll(rob, many, chunk=128), rtol=1e-13)
     # implausibility: the same statement (every block 5 sigma off) in the robust loss's units
     assert plain.loss_at_rms(5.0) == pytest.approx(0.5 * 25.0 * plain.dim, rel=1e-12)
     thr = rob.loss_at_rms(5.0)

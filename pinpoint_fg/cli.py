@@ -122,20 +122,22 @@ def _probability(text: str) -> float:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from pinpoint_fg.io.recording.reader import summarize_recording
+    from pinpoint_fg.io.recording.reader import summarize_recording, time_order_note
     from pinpoint_fg.io.recording.validator import validate_run
     from pinpoint_fg.observe import outside_image_note
 
     recording, errors = validate_run(args.run)
+    if not errors and not recording.frames:  # valid as a format, but `track` has nothing to track: say so here too
+        errors = [InputError("the recording has no frames", file=Path(args.run) / "frames.csv")]
     if errors:
         for e in errors:
             print(f"error: {e}", file=sys.stderr)
         print(f"{args.run}: INVALID ({len(errors)} error(s))", file=sys.stderr)
         return 2
     print(summarize_recording(recording))
-    note = outside_image_note(recording)
-    if note is not None:  # valid, but the trackers will ignore those keypoints
-        print(note, file=sys.stderr)
+    for note in (outside_image_note(recording), time_order_note(recording)):
+        if note is not None:  # valid, but the user should know
+            print(note, file=sys.stderr)
     return 0
 
 

@@ -289,10 +289,19 @@ def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200)
     camera: PinholeCamera = recording.info.camera
     tip, tail = (camera.undistort_px(np.asarray(px, float)[None, :])[0] if detected_in_image(camera, px) else None
                  for px in (rec.tip_px, rec.tail_px))
+    for name, px, raw in (("tip", tip, rec.tip_px), ("tail", tail, rec.tail_px)):
+        if px is not None and not np.isfinite(px).all():  # the reader's grid check makes this rare; never silent
+            raise InputError(f"frame {rec.frame}: the {name} at ({raw[0]:g}, {raw[1]:g}) px cannot be undistorted "
+                             "with recording.json's camera.distortion (NaN or inf)",
+                             file=Path(recording.root) / "frames.csv", column=f"{name}_u")
     backbone = None
     if rec.mask is not None:
         mask = recording.load_mask(rec)
         pts = backbone_from_mask(mask, camera, max_points=max_points, file=Path(recording.root) / rec.mask)
+        if not np.isfinite(pts).all():
+            raise InputError(f"frame {rec.frame}: {int((~np.isfinite(pts).all(axis=1)).sum())} backbone pixel(s) "
+                             "cannot be undistorted with recording.json's camera.distortion (NaN or inf)",
+                             file=Path(recording.root) / rec.mask)
         backbone = pts if pts.shape[0] > 0 else None
     return Observation(
         frame=int(rec.frame),

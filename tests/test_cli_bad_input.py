@@ -1451,3 +1451,37 @@ def test_an_empty_robust_spec_is_a_usage_error(spec: str, run: Path, tmp_path: P
     line = _one_error_line(capsys.readouterr().err)
     assert "--robust" in line and "empty" in line and "'none'" in line
     assert not out.exists()
+
+
+def test_validate_refuses_a_run_without_frames_as_track_does(run: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "run"
+    shutil.copytree(run, bad)
+    lines = (bad / "frames.csv").read_text().splitlines()
+    (bad / "frames.csv").write_text(lines[0] + "\n")  # the header alone: validate said OK, track "no frames"
+    assert main(["validate", str(bad)]) == 2
+    assert "no frames" in capsys.readouterr().err
+    assert main(["track", str(bad), "--method", "map", "--out", str(tmp_path / "r")]) == 2
+    assert "no frames" in _one_error_line(capsys.readouterr().err)
+
+
+def test_time_stamps_out_of_order_are_tracked_with_a_note(run: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """The format orders frames by `frame` only: a t_s that goes back is valid and tracked, but the user is told
+    (trajectory.tum is then not in time order)."""
+    bad = tmp_path / "run"
+    shutil.copytree(run, bad)
+    lines = (bad / "frames.csv").read_text().splitlines()
+    cols = lines[0].split(",")
+    i = cols.index("t_s")
+    row = lines[5].split(",")  # frame 4 gets the time stamp of frame 1
+    row[i] = lines[2].split(",")[i]
+    lines[5] = ",".join(row)
+    (bad / "frames.csv").write_text("\n".join(lines) + "\n")
+    assert main(["validate", str(bad)]) == 0
+    err = capsys.readouterr().err
+    assert "t_s does not increase at 1 frame(s) (first: frame 4" in err
+    assert main(["track", str(bad), "--method", "map", "--out", str(tmp_path / "r")]) == 0
+    assert "t_s does not increase" in capsys.readouterr().err
+    times = [float(s.split()[0]) for s in (tmp_path / "r" / "trajectory.tum").read_text().splitlines()]
+    assert len(times) == 8 and times[4] < times[3]

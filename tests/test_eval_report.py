@@ -343,6 +343,18 @@ def test_ground_truth_that_does_not_describe_its_frame_is_left_out_of_the_scores
     assert sum(line.startswith("note:") for line in capsys.readouterr().out.splitlines()) == 1
 
 
+def test_a_run_without_ground_truth_is_said_to_be_so(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    """Its row reads 0 frames and dashes; one line says why (a run without truth is valid: tracked, not scored)."""
+    rec = setup[0]
+    bare = _run_with_gt(rec.root, tmp_path / "bare", {f.frame: None for f in rec.frames})
+    rep = evaluate_results([_result_on(bare, rec, tmp_path / "r")], out=tmp_path / "e", figures=False)
+    assert rep.evaluations[0].row["frames"] == 0
+    lines = [line for line in rep.text.splitlines() if line.startswith("no ground truth:")]
+    assert len(lines) == 1 and f"none of its {F} frames has a ground-truth pose" in lines[0]
+    scored = evaluate_results([_result_on(rec, rec, tmp_path / "r2")], out=tmp_path / "e2", figures=False)
+    assert "no ground truth" not in scored.text
+
+
 def test_ground_truth_in_the_wrong_unit_throughout_is_refused_before_the_output_exists(
         setup, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
     """Every gt translation 100x too large: the first row is named, exit 2, and no --out directory is left."""

@@ -274,6 +274,16 @@ def test_non_numeric_cell(run) -> None:
     assert "not a number" in str(err) and f"frame {run[1][2].frame}" in str(err)
 
 
+@pytest.mark.parametrize(("column", "value"), [("frame", "\u0664"), ("tip_u_px", "1\u0662.5"), ("gt_y_m", "\uff11")])
+def test_digits_other_than_ascii_are_not_numbers(run, column: str, value: str) -> None:
+    """Arabic-Indic and full-width digits: Python's int() and float() read them (the frame cell "\u0664" was
+    taken as frame 4), but they are not the format's plain decimal numbers."""
+    root = run[0]
+    set_cell(root, 3, column, value)
+    err = validate_run(root)[1][0]
+    assert_located(err, "frames.csv", 3, column)
+
+
 @pytest.mark.parametrize("value", ["nan", "NaN", "inf", "-Infinity"])
 def test_nan_or_inf_cell(run, value: str) -> None:
     root = run[0]
@@ -419,6 +429,10 @@ def test_missing_json_key(run, key: str, edit) -> None:
         ("camera.width", lambda d: d["camera"].update(width="40"), "integer"),
         ("camera.height", lambda d: d["camera"].update(height=30.5), "integer"),
         ("camera.fx", lambda d: d["camera"].update(fx=0.0), "> 0"),
+        # a tiny positive focal length made every undistorted keypoint infinite: a traceback in track
+        ("camera.fy", lambda d: d["camera"].update(fy=1e-300), "out of range"),
+        # within every coefficient's bound, but OpenCV's inverse of this rational model is NaN on the image
+        ("camera.distortion", lambda d: d["camera"].update(distortion=[0.0] * 7 + [1e6]), "cannot be inverted"),
         ("camera.cy", lambda d: d["camera"].update(cy=True), "number"),
         ("camera.distortion", lambda d: d["camera"].update(distortion=[0.1, 0.2, 0.3]), "coefficients"),
         ("camera", lambda d: d.update(camera=[1, 2]), "object"),

@@ -257,6 +257,8 @@ def set_cell(path: Path, data_row: int, column: str, value: str) -> None:
         ("estimates.csv", 3, "t_s", "nan", "not a finite number"),
         ("estimates.csv", 1, "bimodal", "yes", "0 or 1"),
         ("estimates.csv", 4, "iterations", "2.5", "integer"),
+        ("estimates.csv", 4, "iterations", "\u0662", "integer"),  # int() reads Arabic-Indic digits; not the format's
+        ("estimates.csv", 2, "x_m", "0.\uff10\uff11", "not a finite number"),  # full-width digits: float() reads them
         ("estimates.csv", 3, "frame", "10", "not greater"),
         ("estimates.csv", 2, "qw", "3.0", "norm"),
         ("smoothed.csv", 2, "qz", "x", "not a finite number"),

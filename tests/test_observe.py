@@ -197,3 +197,21 @@ def test_keypoints_outside_the_image_are_not_detections(tmp_path) -> None:
     note = outside_image_note(recording)
     assert note is not None and "3 tip/tail keypoint(s)" in note and "frame 1, tip at (-5000, 500)" in note
     assert outside_image_note(recording, recording.frames[:1]) is None
+
+
+def test_points_the_lens_model_cannot_undistort_are_a_located_error(tmp_path, monkeypatch) -> None:
+    """The reader refuses a lens model whose inverse is NaN on its image grid (tests/test_io_recording.py); a pixel
+    between the grid's points is still not passed on as NaN (Observation's ValueError was a traceback in track)."""
+    cam = PinholeCamera(450.0, 450.0, 239.5, 239.5, 480, 480, (-0.05, 0.01, 0.0, 0.0, 0.0))
+    info = RecordingInfo(name="obs", frame_rate_hz=30.0, camera=cam, needle=NEEDLE)
+    mask = np.zeros((480, 480), np.uint8)
+    cv2.circle(mask, (240, 240), 60, 255, 4)
+    frames = [FrameRecord(frame=0, t_s=0.0, tip_px=np.array([200.0, 210.0])), FrameRecord(frame=1, t_s=0.1)]
+    recording = read_recording(write_recording(tmp_path / "run", info, frames, masks={1: mask}))
+    monkeypatch.setattr(PinholeCamera, "undistort_px", lambda self, pts: np.full(np.shape(pts), np.nan))
+    with pytest.raises(InputError) as err:
+        observe_frame(recording, recording.frames[0])
+    assert err.value.column == "tip_u" and err.value.file.endswith("frames.csv") and "frame 0" in str(err.value)
+    with pytest.raises(InputError) as err:
+        observe_frame(recording, recording.frames[1])
+    assert err.value.file.endswith(".png") and "cannot be undistorted" in str(err.value)

@@ -11,6 +11,7 @@ from pinpoint_fg.posterior.modes import Mode
 from pinpoint_fg.posterior.spread import tangent_spread
 from pinpoint_fg.posterior.summary import (
     BIMODAL_MODE_WEIGHT,
+    K_MAX,
     WEAK_UNITS,
     bimodal_from_modes,
     modes_from_particles,
@@ -150,6 +151,19 @@ def test_modes_of_estimate_prefers_the_trackers_modes_and_handles_map() -> None:
     assert cols["bimodal_modes"] == 0.0
     assert cols["weak_sigma"] == pytest.approx(2.0)  # 2 mm along z beats 0.57 deg and 1 mm
     assert cols["weak_vz"] == 1.0
+
+
+def test_modes_of_estimate_reports_at_most_k_max_modes_renormalised() -> None:
+    """An MHT bank of six branches: the four heaviest, their weights renormalised over them (the result format
+    holds 1 to 4 modes per frame summing to 1; six modes were a ValueError traceback in track's writer)."""
+    P, lp, _ = _two_clusters(30, 20)
+    w = [0.05, 0.4, 0.02, 0.3, 0.03, 0.2]
+    own = tuple(Mode(se3_exp(np.full(6, 0.01 * k)), wk, np.eye(6) * (k + 1)) for k, wk in enumerate(w))
+    got = modes_of_estimate(_estimate(P, lp, own))
+    assert len(got) == K_MAX == 4
+    assert [m.weight for m in got] == pytest.approx([0.4 / 0.95, 0.3 / 0.95, 0.2 / 0.95, 0.05 / 0.95], rel=1e-15)
+    assert [m.cov_xi[0, 0] for m in got] == [2.0, 4.0, 6.0, 1.0]
+    assert sum(m.weight for m in got) == pytest.approx(1.0, abs=1e-15)
 
 
 def test_bad_inputs_are_rejected() -> None:

@@ -906,7 +906,8 @@ def evaluate_results(
     if figures:
         say("figures")
         files += _figures(evals, out)
-    text = comparison_text(evals) + text_scaled + partial_text(evals, [(res, rec) for res, rec, _, _ in loaded])
+    text = (comparison_text(evals) + text_scaled + partial_text(evals, [(res, rec) for res, rec, _, _ in loaded])
+            + no_truth_text(evals))
     notes = [left_out_note(recs[root], gone, " of the scores") for root, gone in left_out.items() if gone]
     if notes:
         text += "\n\n" + "\n".join(notes)
@@ -923,6 +924,17 @@ def partial_text(evals: Sequence[ResultEvaluation], pairs: Sequence[tuple[Result
             why = "tracked with fewer frames" if res.complete else "stopped early (result.json: complete false)"
             lines.append(f"partial: {ev.label} on {rec.info.name} ({res.root}): {len(res)} of {len(rec.frames)} "
                          f"frames, {why}; its figures are over those frames only")
+    return "\n\n" + "\n".join(lines) if lines else ""
+
+
+def no_truth_text(evals: Sequence[ResultEvaluation]) -> str:
+    """A line per result whose recording has no ground-truth pose on any frame (its table row reads "0 frames" and
+    dashes, which alone looked like a failure): only its verdicts and timings are reported. Ground truth left out
+    by the scale gate has its own note (:func:`~pinpoint_fg.eval.gt_scale.left_out_note`)."""
+    lines = [f"no ground truth: {ev.label} on {ev.recording.info.name} ({ev.result.root}): none of its "
+             f"{len(ev.has_gt)} frames has a ground-truth pose (frames.csv gt_* cells), so its errors, q95 "
+             "coverage and NLL are not scored; only its verdicts and timings are"
+             for ev in evals if all(fr.cam_T_needle_gt is None for fr in ev.recording.frames)]
     return "\n\n" + "\n".join(lines) if lines else ""
 
 

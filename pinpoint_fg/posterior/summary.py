@@ -223,16 +223,18 @@ def modes_from_particles(
 def modes_of_estimate(est: object) -> tuple[Mode, ...]:
     """The modes of a tracker's :class:`~pinpoint_fg.estimate.Estimate`, dominant first.
 
-    The tracker's own ``modes`` when it reports them (MHT; weights renormalised to sum to 1 and
-    covariances symmetrised, against rounding in the tracker); a single particle (the MAP method) is one
-    mode of weight 1 with the estimate's covariance (the MAP tracker's GTSAM marginal); otherwise
-    :func:`modes_from_particles` of the particle set.
+    The tracker's own ``modes`` when it reports them (SVN, MHT): the ``K_MAX`` heaviest (the result format's
+    limit; an MHT bank of more branches, ``--particles 8``, had more and its writer refused the frame), weights
+    renormalised over them to sum to 1 (as SVN reports its best modes) and covariances symmetrised, against
+    rounding in the tracker; a single particle (the MAP method) is one mode of weight 1 with the estimate's
+    covariance (the MAP tracker's GTSAM marginal); otherwise :func:`modes_from_particles` of the particle set.
     """
     own = getattr(est, "modes", None)
     if own is not None:
-        total = float(sum(float(m.weight) for m in own))
+        kept = sorted(own, key=lambda m: -float(m.weight))[:K_MAX]
+        total = float(sum(float(m.weight) for m in kept))
         return tuple(Mode(np.asarray(m.cam_T_needle, dtype=float), min(1.0, float(m.weight) / total), _sym(m.cov_xi))
-                     for m in sorted(own, key=lambda m: -float(m.weight)))
+                     for m in kept)
     P = np.asarray(est.particles, dtype=float)  # type: ignore[attr-defined]
     if P.shape[0] == 1:
         return (Mode(cam_T_needle=np.asarray(est.cam_T_needle, dtype=float),  # type: ignore[attr-defined]

@@ -57,3 +57,21 @@ def summarize_recording(rec: Recording) -> str:
     occ_text = ", ".join(f"{label} {occ.get(label, 0)}" for label in OCCLUSION_LABELS)
     lines.append(f"  occlusion    {occ_text}, unlabelled {occ.get(None, 0)}")
     return "\n".join(lines)
+
+
+def time_order_note(rec: Recording, frames: list | None = None) -> str | None:
+    """One line for the user when ``t_s`` does not increase from row to row (None otherwise).
+
+    The format orders frames by ``frame`` and does not require ``t_s`` to increase (schema's decisions), so such a
+    run is valid and is tracked (a time step <= 0 gets one reference frame's process noise,
+    :func:`pinpoint_fg.kinematics_check.elapsed_scale`); but ``trajectory.tum`` is then not in time order, which tools
+    that read TUM files (evo) assume.
+    """
+    frames = rec.frames if frames is None else frames
+    back = [(a, b) for a, b in zip(frames, frames[1:], strict=False) if not b.t_s > a.t_s]
+    if not back:
+        return None
+    a, b = back[0]
+    return (f"note: {Path(rec.root) / 'frames.csv'}: t_s does not increase at {len(back)} frame(s) (first: frame "
+            f"{b.frame} at {b.t_s:g} s after frame {a.frame} at {a.t_s:g} s); they are tracked in frame order "
+            "(such a step gets one reference frame's process noise), and trajectory.tum will not be in time order")

@@ -16,8 +16,8 @@ Decisions the format leaves open (stated here so readers and writers agree):
   parses but would overflow the maths): pixel cells within :data:`PIXEL_RANGE_FACTOR` image
   sizes of the image (``-10 W <= u <= 11 W``), metres within :data:`MAX_ABS_METRES` of the
   camera, ``frame`` at most ``2**63 - 1`` (int64), ``|t_s| <=`` :data:`MAX_ABS_TIME_S`; in
-  recording.json ``width``/``height`` at most :data:`MAX_IMAGE_SIDE_PX`, ``fx``/``fy`` at most
-  :data:`MAX_FOCAL_PX`, ``cx``/``cy`` in the pixel range, ``|distortion| <=``
+  recording.json ``width``/``height`` at most :data:`MAX_IMAGE_SIDE_PX`, ``fx``/``fy`` between
+  :data:`MIN_FOCAL_PX` and :data:`MAX_FOCAL_PX`, ``cx``/``cy`` in the pixel range, ``|distortion| <=``
   :data:`MAX_ABS_DISTORTION`, ``frame_rate_hz <=`` :data:`MAX_FRAME_RATE_HZ`, needle lengths at
   least :data:`MIN_NEEDLE_M` (0.1 mm radius, 1 um wire) and at most :data:`MAX_NEEDLE_M` and angles
   within ``±``:data:`MAX_ABS_ANGLE_RAD`. recording.json is
@@ -101,6 +101,9 @@ MAX_FRAME_INDEX = 2**63 - 1
 MAX_IMAGE_SIDE_PX = 65535
 #: Largest accepted focal length, pixels.
 MAX_FOCAL_PX = 1e7
+#: Smallest accepted focal length, pixels: below one pixel per radian a pinhole camera's field of view is within
+#: a fraction of a degree of 180 deg. (``fx = 1e-300`` made every projected keypoint infinite.)
+MIN_FOCAL_PX = 1.0
 #: Largest accepted |distortion coefficient|.
 MAX_ABS_DISTORTION = 1e6
 #: Largest accepted frame rate, Hz.
@@ -120,7 +123,7 @@ FRAMES_CSV = "frames.csv"
 INFO_KEYS = ("format", "version", "name", "frame_rate_hz", "camera", "needle")
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "distortion")
 NEEDLE_KEYS = ("radius_m", "tail_angle_rad", "tip_angle_rad", "grasp_angle_rad", "wire_diameter_m")
-INTEGER_CELL = re.compile(r"\d+")
+INTEGER_CELL = re.compile(r"\d+", re.ASCII)  # ASCII: \d alone also matched "٤" (int() reads it)
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ from pinpoint_fg.io.recording.schema import (
     MAX_FRAME_RATE_HZ,
     MAX_IMAGE_SIDE_PX,
     MAX_NEEDLE_M,
+    MIN_FOCAL_PX,
     MIN_NEEDLE_M,
     NEEDLE_KEYS,
     OCCLUSION_LABELS,
@@ -58,7 +59,7 @@ from pinpoint_fg.io.recording.schema import (
     shown,
 )
 
-_DECIMAL = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+_DECIMAL = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 _NONFINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
 
 
@@ -163,7 +164,7 @@ def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | No
         cam_vals["width"] = positive_int(cam, "width", "camera.width")
         cam_vals["height"] = positive_int(cam, "height", "camera.height")
         for key in ("fx", "fy"):
-            cam_vals[key] = number(cam, key, f"camera.{key}", positive=True, bounds=(0.0, MAX_FOCAL_PX))
+            cam_vals[key] = number(cam, key, f"camera.{key}", positive=True, bounds=(MIN_FOCAL_PX, MAX_FOCAL_PX))
         for key, side in (("cx", "width"), ("cy", "height")):
             n_px = cam_vals[side] if cam_vals[side] is not None else MAX_IMAGE_SIDE_PX
             cam_vals[key] = number(cam, key, f"camera.{key}", bounds=_pixel_bounds(n_px))
@@ -197,6 +198,11 @@ def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | No
     except ValueError as exc:
         err(str(exc), "camera")
         return None
+    bad_px = _not_undistortable(camera)
+    if bad_px is not None:
+        err(f"cannot be inverted at pixel ({bad_px[0]:g}, {bad_px[1]:g}) of the image (OpenCV's undistortion gives "
+            "NaN or inf there): not a usable lens model", "camera.distortion")
+        return None
     try:
         needle_model = NeedleModel(**needle_vals)
     except ValueError as exc:
@@ -204,6 +210,26 @@ def _parse_info(json_path: Path, errors: list[InputError]) -> RecordingInfo | No
         return None
     extra = {k: v for k, v in doc.items() if k not in INFO_KEYS}
     return RecordingInfo(name=name, frame_rate_hz=rate, camera=camera, needle=needle_model, extra=extra)
+
+
+#: Pixels per image side at which :func:`_not_undistortable` tries the lens model (a grid, corners included).
+UNDISTORT_GRID = 17
+
+
+def _not_undistortable(camera: PinholeCamera) -> tuple[float, float] | None:
+    """The first pixel of a ``UNDISTORT_GRID`` x ``UNDISTORT_GRID`` grid over the image (corners included) that
+    ``camera.undistort_px`` maps to NaN or inf, or None. Coefficients within the accepted bounds can still make
+    the model's inverse blow up (a rational-model ``k6 = 1e6``: NaN at almost every pixel): every keypoint and mask
+    pixel would then be NaN, so the lens model is refused where it is read, not frame by frame."""
+    if not camera.has_distortion:
+        return None
+    u = np.linspace(0.0, camera.width - 1.0, UNDISTORT_GRID)
+    v = np.linspace(0.0, camera.height - 1.0, UNDISTORT_GRID)
+    grid = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+    with np.errstate(all="ignore"):
+        out = camera.undistort_px(grid)
+    bad = ~np.isfinite(out).all(axis=1)
+    return (float(grid[bad][0, 0]), float(grid[bad][0, 1])) if bad.any() else None
 
 
 class _RowContext:

@@ -46,9 +46,9 @@ from pinpoint_fg.io.result.schema import (
     Result,
 )
 
-_DECIMAL = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+_DECIMAL = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 _NAN = re.compile(r"[+-]?nan", re.IGNORECASE)
-_INTEGER = re.compile(r"\d+")
+_INTEGER = re.compile(r"\d+", re.ASCII)
 
 
 def _read_info(root: Path) -> dict:

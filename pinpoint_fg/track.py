@@ -26,7 +26,7 @@ from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.jsonfile import INT64_MAX
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
-from pinpoint_fg.io.recording.reader import read_recording, time_order_note
+from pinpoint_fg.io.recording.reader import no_image_evidence_note, read_recording, time_order_note
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.particles import MAX_PARTICLES
 from pinpoint_fg.io.result.writer import ResultWriter
@@ -254,7 +254,8 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]
     if not frames:
         raise InputError("the recording has no frames", file=Path(run) / "frames.csv")
-    for note in (outside_image_note(recording, frames), time_order_note(recording, frames)):
+    for note in (outside_image_note(recording, frames), time_order_note(recording, frames),
+                 no_image_evidence_note(recording, frames)):
         if note is not None:
             print(note, file=sys.stderr)
     settings = tracker.settings()

@@ -1485,3 +1485,23 @@ def test_time_stamps_out_of_order_are_tracked_with_a_note(run: Path, tmp_path: P
     assert "t_s does not increase" in capsys.readouterr().err
     times = [float(s.split()[0]) for s in (tmp_path / "r" / "trajectory.tum").read_text().splitlines()]
     assert len(times) == 8 and times[4] < times[3]
+
+
+def test_a_run_without_any_image_evidence_is_tracked_with_a_note(run: Path, tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    bare = tmp_path / "run"
+    shutil.copytree(run, bare)
+    lines = (bare / "frames.csv").read_text().splitlines()
+    cols = lines[0].split(",")
+    gone = [cols.index(c) for c in ("tip_u_px", "tip_v_px", "tail_u_px", "tail_v_px", "mask")]
+    rows = [line.split(",") for line in lines[1:]]
+    for r in rows:
+        for i in gone:
+            r[i] = ""
+    (bare / "frames.csv").write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    assert main(["validate", str(bare)]) == 0
+    assert "none of the 8 frames has a tip, a tail or a mask" in capsys.readouterr().err
+    assert main(["track", str(bare), "--method", "map", "--out", str(tmp_path / "r")]) == 0
+    assert "none of the 8 frames" in capsys.readouterr().err
+    assert main(["validate", str(run)]) == 0
+    assert "none of the" not in capsys.readouterr().err

@@ -75,3 +75,13 @@ def time_order_note(rec: Recording, frames: list | None = None) -> str | None:
     return (f"note: {Path(rec.root) / 'frames.csv'}: t_s does not increase at {len(back)} frame(s) (first: frame "
             f"{b.frame} at {b.t_s:g} s after frame {a.frame} at {a.t_s:g} s); they are tracked in frame order "
             "(such a step gets one reference frame's process noise), and trajectory.tum will not be in time order")
+
+
+def no_image_evidence_note(rec: Recording, frames: list | None = None) -> str | None:
+    """One line for the user when no frame has a tip, a tail or a mask (None otherwise): such a run is valid and
+    is tracked, but every pose then comes from the first frame's prior and the kinematics alone."""
+    frames = rec.frames if frames is None else frames
+    if not frames or any(f.tip_px is not None or f.tail_px is not None or f.mask is not None for f in frames):
+        return None
+    return (f"note: {Path(rec.root) / 'frames.csv'}: none of the {len(frames)} frames has a tip, a tail or a mask; "
+            "the poses come from the prior and the kinematics (where present) alone")

@@ -122,9 +122,9 @@ def _probability(text: str) -> float:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from pinpoint_fg.io.recording.reader import no_image_evidence_note, summarize_recording, time_order_note
+    from pinpoint_fg.io.recording.reader import summarize_recording
     from pinpoint_fg.io.recording.validator import validate_run
-    from pinpoint_fg.observe import outside_image_note
+    from pinpoint_fg.observe import recording_notes
 
     recording, errors = validate_run(args.run)
     if not errors and not recording.frames:  # valid as a format, but `track` has nothing to track: say so here too
@@ -135,9 +135,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         print(f"{args.run}: INVALID ({len(errors)} error(s))", file=sys.stderr)
         return 2
     print(summarize_recording(recording))
-    for note in (outside_image_note(recording), time_order_note(recording), no_image_evidence_note(recording)):
-        if note is not None:  # valid, but the user should know
-            print(note, file=sys.stderr)
+    for note in recording_notes(recording):  # valid, but the user should know
+        print(note, file=sys.stderr)
     return 0
 
 

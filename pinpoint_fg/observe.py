@@ -48,6 +48,7 @@ import numpy as np
 
 from factors.geometry import PinholeCamera
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.recording.reader import no_image_evidence_note, time_order_note
 from pinpoint_fg.observation import Observation
 
 if TYPE_CHECKING:
@@ -273,6 +274,15 @@ def outside_image_note(recording: Recording, frames: list[FrameRecord] | None = 
     return (f"note: {Path(recording.root) / 'frames.csv'}: {len(outside)} tip/tail keypoint(s) more than "
             f"{KEYPOINT_OUTSIDE_PX:g} px outside the {camera.width} x {camera.height} image are ignored as not "
             f"detected (first: frame {frame}, {name} at ({u:g}, {v:g}) px; wrong image size or pixel scale?)")
+
+
+def recording_notes(recording: Recording, frames: list[FrameRecord] | None = None) -> list[str]:
+    """The ``note:`` lines a valid run (or its ``frames``) still deserves, for ``validate`` and ``track``: keypoints
+    outside the image (:func:`outside_image_note`), ``t_s`` out of order and no image evidence at all
+    (:mod:`pinpoint_fg.io.recording.reader`)."""
+    notes = (outside_image_note(recording, frames), time_order_note(recording, frames),
+             no_image_evidence_note(recording, frames))
+    return [n for n in notes if n is not None]
 
 
 def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200) -> Observation:

@@ -26,14 +26,14 @@ from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.jsonfile import INT64_MAX
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
-from pinpoint_fg.io.recording.reader import no_image_evidence_note, read_recording, time_order_note
+from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.particles import MAX_PARTICLES
 from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.io.spread_scale import SpreadScale, scaled_cov_xi, settings_entry
 from pinpoint_fg.likelihood import CONIC_DISTANCES, SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
-from pinpoint_fg.observe import outside_image_note
+from pinpoint_fg.observe import recording_notes
 from pinpoint_fg.offload import Offload, bimodality_verdict, to_frame_estimate  # noqa: F401 - track's public names
 from pinpoint_fg.posterior.summary import posterior_columns
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig
@@ -254,10 +254,8 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]
     if not frames:
         raise InputError("the recording has no frames", file=Path(run) / "frames.csv")
-    for note in (outside_image_note(recording, frames), time_order_note(recording, frames),
-                 no_image_evidence_note(recording, frames)):
-        if note is not None:
-            print(note, file=sys.stderr)
+    for note in recording_notes(recording, frames):
+        print(note, file=sys.stderr)
     settings = tracker.settings()
     # absolute, as the recording's path: `evaluate` reads it back from any directory (relative, it found another
     # noise.json in the caller's directory, or none)

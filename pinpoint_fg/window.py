@@ -62,7 +62,7 @@ from pinpoint_fg.elimination import (
     whiten_prior,
 )
 from pinpoint_fg.kinematic_bias import BiasBook, BiasModel, kinematic_correction
-from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames
+from pinpoint_fg.likelihood import FrameLikelihood, gauss_newton_frames, gauss_newton_rows
 from pinpoint_fg.relinearize import ChainAnchor, anchored_linearization
 from pinpoint_fg.window_memo import OldestTermsMemo
 
@@ -180,10 +180,12 @@ class Window:
         while self.size > self.length:
             self._marginalise_oldest()
 
-    def _prior_terms(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The marginalisation prior on the oldest pose at poses T: value, gradient, information."""
-        r, J = res.pose_prior_residual(T, self.prior_mean)
-        return whiten_prior(r, J, self.prior_W)
+    def _prior_terms(self, T: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The marginalisation prior on the oldest pose at poses T (of hypotheses ``rows``; None: all): value,
+        gradient, information."""
+        mean, W = (self.prior_mean, self.prior_W) if rows is None else (self.prior_mean[rows], self.prior_W[rows])
+        r, J = res.pose_prior_residual(T, mean)
+        return whiten_prior(r, J, W)
 
     def _prior_key(self, T: np.ndarray) -> tuple:
         """Memo key of the oldest frame's terms at poses T (:class:`~pinpoint_fg.window_memo.OldestTermsMemo`)."""
@@ -205,6 +207,21 @@ class Window:
             pv, pg, pH = self._prior_terms(T)
             return self._memo.put(key, (nll + pv, g + pg, H + pH))
         return nll, g, H
+
+    def _unary_rows(self, T: np.ndarray, rows: np.ndarray, T_before: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_unary` of the oldest pose at poses ``T`` that equal ``T_before`` (the last evaluation's)
+        outside ``rows``: those rows are evaluated, the others come from the memo, which then holds ``T``."""
+        key = self._prior_key(T)
+        hit = self._memo.get(key)
+        if hit is not None:
+            return hit
+        if not self._memo.holds(self._prior_key(T_before)):
+            return self._unary(0, T)
+        nll, g, H = gauss_newton_rows(self.frames[0], T, rows, T_before)
+        pv, pg, pH = self._prior_terms(T[rows], rows)
+        self._memo.with_rows(key, (nll[rows] + pv, g[rows] + pg, H[rows] + pH), rows)
+        return self._memo.get(key)
 
     def linearize(self) -> Linearization:
         """Gauss-Newton model of every window, eliminated onto the newest pose (see module docstring)."""
@@ -265,7 +282,8 @@ class Window:
             d[j] = conditional_step(lin.cond_inv[j], lin.cond_g[j], lin.cond_B[j], d[j + 1])
         self.poses = self.poses @ se3_exp(d)  # all L retractions in one call
 
-    def newest_value(self, cam_T_newest: np.ndarray, lin: Linearization) -> np.ndarray:
+    def newest_value(self, cam_T_newest: np.ndarray, lin: Linearization,
+                     changed: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Negative log-posterior (N,) if the newest poses were ``cam_T_newest`` (older at their conditional optimum).
 
         Exact for the newest pose's own terms; the older poses' contribution uses the GN model
@@ -274,9 +292,16 @@ class Window:
 
         Consistent with ``lin``: at the current newest poses it returns ``lin.value`` (to round-off;
         :func:`~pinpoint_fg.elimination.older_value` says why the last motion term needs care).
+
+        ``changed = (rows, cam_T_before)``: ``cam_T_newest`` equals the poses of the last call (with the same
+        ``lin``) outside ``rows``; the frame's terms are evaluated for those rows only and the memos merged
+        (:func:`~pinpoint_fg.likelihood.gauss_newton_rows`): the safeguard's halvings re-evaluate the few
+        particles whose step they shortened.
         """
         assert self.poses is not None
         if self.size == 1:
+            if changed is not None:
+                return self._unary_rows(cam_T_newest, *changed)[0]
             return self._unary(0, cam_T_newest)[0]
         # exact terms of the newest pose + exact last motion term with x_{L-2} at its conditional optimum
         j = self.size - 1
@@ -286,7 +311,10 @@ class Window:
             lin._newest_base = (self.poses, older_value(lin, self.poses[-2], self.poses[-1], self.deltas[-1],
                                                         self.delta_W[-1]))
         older = lin._newest_base[1]
-        v_new = self.frames[j].gauss_newton(cam_T_newest)[0]  # memoised: the next linearisation reuses it
+        if changed is not None:  # memoised: the next linearisation reuses it
+            v_new = gauss_newton_rows(self.frames[j], cam_T_newest, changed[0], changed[1])[0]
+        else:
+            v_new = self.frames[j].gauss_newton(cam_T_newest)[0]
         # conditional optimum of x_{L-2} given the move of the newest: linear in the newest's tangent change
         dL = local(self.poses[-1], cam_T_newest)
         dprev = conditional_step(lin.cond_inv[-1], lin.cond_g[-1], lin.cond_B[-1], dL)

@@ -139,6 +139,9 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert settings["settings"]["disabled"] == []
     lat = json.loads((tmp_path / "bench" / "latency.json").read_text())
     assert set(lat["scenarios"]) == set(BENCH_SCENARIOS)
+    # latency is measured on the model the accuracy table scores: symmetric without its grasp factors
+    assert sorted(lat["scenarios"]["symmetric"]["disabled"]) == ["grasp-perpendicular", "grasp-position"]
+    assert lat["scenarios"]["normal"]["disabled"] == []
     grid = {(r["particles"], r["window"]) for r in lat["grid"]}
     assert grid == {(n, w) for n in (10, 25, 50, 100) for w in (1, 3, 5)}
     normal = lat["scenarios"]["normal"]["methods"]

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 
 from factors.conventions import matrix_to_pose3
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
-from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
+from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches, gauss_newton_rows
 from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
 
@@ -115,3 +116,38 @@ def test_residuals_are_what_whitened_multiplies_by_each_terms_square_root_inform
         parts.append(v * W[0, 0] if name == "conic" else v @ W.T)
     np.testing.assert_allclose(np.concatenate(parts, axis=1), lik.whitened(poses, jacobian=False)[0],
                                rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["uniform", "edge-on"])
+def test_gauss_newton_rows_evaluates_only_the_changed_rows_and_equals_a_full_evaluation(kind: str) -> None:
+    # The SVN safeguard's halvings re-evaluate the particles whose step they shortened (issue 10): the merged
+    # result must be a full evaluation's, to round-off, and the memo must then hold it for the merged poses.
+    rng = np.random.default_rng(31)
+    truth = se3_exp(np.r_[0.3, -0.2, 0.1, 0.002, -0.001, 0.05])
+    if kind == "edge-on":  # the needle plane through the optical centre: the conic degenerates to a line
+        truth = se3_exp(np.r_[0.0, np.pi / 2 - 1e-4, 0.0, 0.0, 0.0, 0.05])
+    f = FrameLikelihood(_obs(truth, rng), MeasurementModel(CAM, NEEDLE, NoiseConfig()))
+    before = truth @ se3_exp(rng.normal(size=(12, 6)) * np.r_[[0.05] * 3, [1e-3] * 3])
+    f.gauss_newton(before)
+    rows = np.array([2, 7, 11])
+    after = before.copy()
+    after[rows] = before[rows] @ se3_exp(rng.normal(size=(3, 6)) * np.r_[[0.02] * 3, [3e-4] * 3])
+    sizes = []
+    irls = f.irls
+    f.irls = lambda T, jacobian=True: (sizes.append(T.shape[0]), irls(T, jacobian))[1]
+    merged = gauss_newton_rows(f, after, rows, before)
+    assert sizes == [3]
+    reference = FrameLikelihood(f.observation, f.model).gauss_newton(after)
+    for a, b in zip(merged, reference, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    assert f._gn_memo[0] == after.tobytes()  # a later full call at the merged poses is free
+    again = f.gauss_newton(after)
+    assert sizes == [3] and all(np.array_equal(a, b) for a, b in zip(again, merged, strict=True))
+    # poses that differ outside rows, or a memo of other poses: a full evaluation, never a wrong merge
+    other = after.copy()
+    other[0] = before[0] @ se3_exp(np.r_[0.01, 0, 0, 0, 0, 0])
+    sizes.clear()
+    full = gauss_newton_rows(f, other, rows, after)
+    assert sizes == [12]
+    for a, b in zip(full, FrameLikelihood(f.observation, f.model).gauss_newton(other), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())

@@ -300,3 +300,41 @@ def test_kinematic_bias_books_follow_the_hypotheses_through_every_row_operation(
     w.resample(np.array([3, 3, 1, 0, 2, 5]))
     for k, m in w.kin.means.items():
         np.testing.assert_array_equal(m, means[k][[3, 3, 1, 4, 5, 5]])
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_a_halving_re_evaluates_only_its_rows_and_the_accepted_trial_needs_no_evaluation(L: int) -> None:
+    # The SVN safeguard: a full trial, then the rows whose step was halved only (newest_value's ``changed``).
+    rng = np.random.default_rng(25)
+    w, _ = _window(L, 8, rng, frames=5)  # the newest frame has a backbone
+    lin = w.linearize()
+    step = rng.normal(size=(8, 6)) * np.r_[[0.01] * 3, [2e-4] * 3]
+    trial = w.newest @ se3_exp(step)
+    full = w.newest_value(trial, lin)
+    rows = np.array([1, 6])
+    halved = step.copy()
+    halved[rows] *= 0.5
+    trial2 = trial.copy()
+    trial2[rows] = w.newest[rows] @ se3_exp(halved[rows])
+    sizes = []
+    irls = w.frames[-1].irls
+    w.frames[-1].irls = lambda T, jacobian=True: (sizes.append(T.shape[0]), irls(T, jacobian))[1]
+    partial = w.newest_value(trial2, lin, changed=(rows, trial))
+    assert sizes == [2]
+    others = np.setdiff1d(np.arange(8), rows)
+    assert np.array_equal(partial[others], full[others])
+    reference = _fresh_copy(w).newest_value(trial2, lin)
+    np.testing.assert_allclose(partial, reference, rtol=1e-12, atol=1e-9)
+    # accepting the merged trial: the next linearisation finds the newest frame's terms in the memo
+    w.move_newest(halved, lin, newest=trial2)
+    assert np.array_equal(w.newest, trial2)
+
+    def no_evaluation(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the newest frame was re-evaluated")
+
+    w.frames[-1].irls = no_evaluation
+    cached = w.linearize()
+    fresh = _fresh_copy(w).linearize()
+    for name in ("value", "grad", "hess", "window_value"):
+        b = getattr(fresh, name)
+        np.testing.assert_allclose(getattr(cached, name), b, rtol=1e-12, atol=1e-12 * np.abs(b).max(), err_msg=name)

@@ -43,6 +43,8 @@ class LockstepResult:
 
     mask: np.ndarray
     """(F,) True where the frame had backbone pixels."""
+    disabled: tuple[str, ...] = ()
+    """The likelihood switches every tracker ran without (``--disable`` names)."""
     latency_ms: dict[str, np.ndarray] = field(default_factory=dict)
     """Per label, (F,) step latency, milliseconds."""
     cpu_ms: dict[str, np.ndarray] = field(default_factory=dict)
@@ -83,19 +85,27 @@ def _errors(T: np.ndarray, T_gt: np.ndarray | None) -> tuple[float, float]:
 
 
 def lockstep(run: str | Path, specs: list[TrackerSpec], max_frames: int | None = None, seed: int = 0,
-             max_points: int = 200) -> LockstepResult:
-    """Step every tracker of ``specs`` in turn on each frame of ``run`` (see module docstring)."""
-    from pinpoint_fg.track import make_tracker, tracker_config
+             max_points: int = 200, disable: tuple[str, ...] | None = None) -> LockstepResult:
+    """Step every tracker of ``specs`` in turn on each frame of ``run`` (see module docstring).
+
+    ``disable``: likelihood switches turned off; None (default) takes the recording's ``suggested_disable``, as
+    ``demo`` and ``benchmark`` track it, so latency is measured on the model whose errors those tables report
+    (before the eighteenth round the symmetric run's latency was measured with its grasp factors on).
+    """
+    from pinpoint_fg.track import make_tracker, suggested_disable, tracker_config
 
     recording = read_recording(run)
+    if disable is None:
+        disable = suggested_disable(run)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]
     observations = [observe_frame(recording, rec, max_points=max_points) for rec in frames]
     trackers = {s.label: make_tracker(s.method, tracker_config(recording, s.method, s.particles, s.window,
-                                                               seed=seed)) for s in specs}
+                                                               disable=disable, seed=seed)) for s in specs}
     from threadpoolctl import threadpool_limits
 
     n = len(frames)
-    out = LockstepResult(mask=np.array([o.backbone_px is not None for o in observations], dtype=bool))
+    out = LockstepResult(mask=np.array([o.backbone_px is not None for o in observations], dtype=bool),
+                         disabled=tuple(disable))
     for s in specs:
         out.latency_ms[s.label] = np.zeros(n)
         out.iterations[s.label] = np.zeros(n)
@@ -176,7 +186,8 @@ def latency_tables(runs: dict[str, Path], frames: int | None, grid_run: Path | N
                 f"{s['iterations_mean']:5.1f} {s['iterations_mean_mask']:7.1f} {s['ratio_median_vs_pf']:6.2f} "
                 f"{s['ratio_median_vs_map']:6.2f} {s['ratio_mask_p95_vs_map']:15.2f} {s['trans_mean_mm']:8.3f} "
                 f"{s['rot_mean_deg']:7.2f} {s['rot_mean_deg_mask']:8.2f}")
-        data["scenarios"][sc] = {"frames": int(res.mask.size), "mask_frames": int(res.mask.sum()), "methods": summ}
+        data["scenarios"][sc] = {"frames": int(res.mask.size), "mask_frames": int(res.mask.sum()),
+                                 "disabled": list(res.disabled), "methods": summ}
     if grid_run is not None:
         lines += ["", "SVN cost vs particles N and window L (lock-step, same frames; ms per frame)",
                   f"{'N':>4} {'L':>2} {'median':>7} {'p95':>7} {'mask med':>8} {'cpu med':>7} {'vs L=1':>6}"]

@@ -311,16 +311,22 @@ class SvnTracker(Tracker):
                 if self._small(delta):
                     self._lin = lin
                     return iterations, value + self.window.evidence
-            # safeguard: halve steps whose particle's cost would collapse
+            # safeguard: halve steps whose particle's cost would collapse; a halving re-evaluates only the
+            # particles it shortened (the others' trial poses, and so their values, are unchanged)
             scale = np.ones(T.shape[0])
-            for _ in range(6):
-                trial = T @ se3_exp(delta * scale[:, None])
-                new_val = self.window.newest_value(trial, lin)
-                bad = ~np.isfinite(new_val) | (new_val > value + s.collapse_nll)
+            trial = T @ se3_exp(delta)
+            new_val = self.window.newest_value(trial, lin)
+            bad = ~np.isfinite(new_val) | (new_val > value + s.collapse_nll)
+            for _ in range(5):  # up to 6 evaluations in all
                 if not bad.any():
                     break
                 scale = np.where(bad, scale * 0.5, scale)
-            else:
+                rows = np.flatnonzero(bad)
+                before, trial = trial, trial.copy()
+                trial[rows] = T[rows] @ se3_exp(delta[rows] * scale[rows, None])
+                new_val = self.window.newest_value(trial, lin, changed=(rows, before))
+                bad = ~np.isfinite(new_val) | (new_val > value + s.collapse_nll)
+            if bad.any():  # still collapsing after five halvings: those particles stay put
                 scale = np.where(bad, 0.0, scale)
                 trial = None  # the last trial is not the accepted step
             delta = delta * scale[:, None]

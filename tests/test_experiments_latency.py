@@ -1,0 +1,37 @@
+"""Lock-step latency runs (:mod:`pinpoint_fg.experiments.latency`): the trackers run on the model the accuracy
+tables score."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pinpoint_fg import track
+from pinpoint_fg.experiments.latency import TrackerSpec, lockstep
+from pinpoint_fg.sim.scenarios import simulate
+
+
+@pytest.mark.parametrize(("disable", "expected"), [
+    (None, ("grasp-perpendicular", "grasp-position")),  # the recording's suggested_disable, as benchmark tracks it
+    ((), ()),
+])
+def test_lockstep_tracks_with_the_recordings_suggested_switches_unless_told(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, disable: tuple[str, ...] | None,
+        expected: tuple[str, ...]) -> None:
+    run = simulate("symmetric", 3, 1, out=tmp_path / "run")
+    seen = []
+    real = track.make_tracker
+
+    def spy(method: str, config: track.TrackerConfig):  # noqa: ANN202 - the tracker, as make_tracker returns it
+        seen.append((method, config.switches))
+        return real(method, config)
+
+    monkeypatch.setattr(track, "make_tracker", spy)
+    res = lockstep(run, [TrackerSpec("svn", "svn", 4), TrackerSpec("map", "map")], disable=disable)
+    assert [m for m, _ in seen] == ["svn", "map"]
+    on = {"grasp-position": "grasp_position", "grasp-perpendicular": "grasp_perpendicular"}
+    for _, switches in seen:
+        assert {name for name, attr in on.items() if not getattr(switches, attr)} == set(expected)
+    assert sorted(res.disabled) == sorted(expected)
+    assert res.latency_ms["svn"].shape == (3,) and res.latency_ms["map"].shape == (3,)

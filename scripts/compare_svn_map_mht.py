@@ -1,7 +1,9 @@
 """SVN vs single-mode MAP vs MHT on every run of a directory: mean errors, truth kept, modes verdict (issue 9).
 
-Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR`` (e.g. the runs of ``pinpoint-fg simulate``
-for each scenario with another ``--seed`` than the benchmark's). Each run is tracked as ``track`` would (the
+Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR [--methods svn map mht] [--runs GLOB ...]``
+(e.g. the runs of ``pinpoint-fg simulate`` for each scenario with another ``--seed`` than the benchmark's;
+``--runs 'snapshots-0[1-8]'`` keeps the runs whose names match a glob; ``--methods svn`` scores one method, e.g. to
+compare two trees by running this from each with ``PYTHONPATH`` set to it). Each run is tracked as ``track`` would (the
 recording's ``suggested_disable``, seed 0), one method after the other, in this process; "kept" = some particle
 within 2 mm / 10 deg of the truth, "bimodal" = the modes verdict (second mode >= 0.1). Last, per scenario (a run's
 name without its ``-SEED`` suffix, as ``pinpoint-fg simulate`` names runs) and method, the means of those columns
@@ -10,7 +12,8 @@ over the scenario's runs.
 
 from __future__ import annotations
 
-import sys
+import argparse
+import fnmatch
 from pathlib import Path
 
 from pinpoint_fg.experiments.compare import score_run
@@ -20,14 +23,15 @@ from pinpoint_fg.track import make_tracker, suggested_disable, tracker_config
 METHODS = ("svn", "map", "mht")
 
 
-def main(root: Path) -> None:
+def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ...] = ("*",)) -> None:
     header = f"{'method':<6} {'trans mm':>8} {'rot deg':>8} {'kept':>6} {'bimodal':>8}"
     print(f"{'run':<16} {header}")
     scores: dict[str, dict[str, list]] = {}
-    for run in sorted(p for p in root.iterdir() if (p / "recording.json").exists()):
+    for run in sorted(p for p in root.iterdir() if (p / "recording.json").exists()
+                      and any(fnmatch.fnmatch(p.name, g) for g in patterns)):
         rec = read_recording(run)
         scenario = run.name.rsplit("-", 1)[0] if run.name.rsplit("-", 1)[-1].isdigit() else run.name
-        for method in METHODS:
+        for method in methods:
             config = tracker_config(rec, method, disable=suggested_disable(run), seed=0)
             sc = score_run(rec, make_tracker(method, config))
             scores.setdefault(scenario, {}).setdefault(method, []).append(sc)
@@ -35,7 +39,7 @@ def main(root: Path) -> None:
                   flush=True)
     print(f"\nmeans per scenario\n{'scenario':<12} {'runs':>4} {header}")
     for scenario, by_method in scores.items():
-        for method in METHODS:
+        for method in methods:
             runs = by_method.get(method, [])
             mean = [sum(getattr(r, k) for r in runs) / len(runs) for k in ("trans_mm", "rot_deg", "kept", "bimodal")]
             print(f"{scenario:<12} {len(runs):4d} {method:<6} {mean[0]:8.2f} {mean[1]:8.1f} {mean[2]:6.1%} "
@@ -43,4 +47,9 @@ def main(root: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("root", type=Path)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--runs", nargs="+", default=["*"], help="globs of run names to keep")
+    args = ap.parse_args()
+    main(args.root, tuple(args.methods), tuple(args.runs))

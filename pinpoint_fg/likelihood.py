@@ -515,9 +515,9 @@ def gauss_newton_rows(f: FrameLikelihood, cam_T_needle: np.ndarray, rows: np.nda
     memo = f._gn_memo
     others = np.ones(T.shape[0], dtype=bool)
     others[rows] = False
-    if (memo is None or memo[0] != before.tobytes() or before.shape != T.shape
+    if (rows.size == 0 or memo is None or memo[0] != before.tobytes() or before.shape != T.shape
             or not np.array_equal(T[others], before[others])):
-        return f.gauss_newton(T)
+        return f.gauss_newton(T)  # nothing changed (the memo answers), or a full evaluation
     old = memo[1]
     part = gauss_newton_frames([f], [T[rows]])[0]
     merged = tuple(a.copy() for a in old)

@@ -143,6 +143,8 @@ def test_gauss_newton_rows_evaluates_only_the_changed_rows_and_equals_a_full_eva
     assert f._gn_memo[0] == after.tobytes()  # a later full call at the merged poses is free
     again = f.gauss_newton(after)
     assert sizes == [3] and all(np.array_equal(a, b) for a, b in zip(again, merged, strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(gauss_newton_rows(f, after, np.zeros(0, int), after), merged,
+                                                     strict=True)) and sizes == [3]  # no rows: the memo answers
     # poses that differ outside rows, or a memo of other poses: a full evaluation, never a wrong merge
     other = after.copy()
     other[0] = before[0] @ se3_exp(np.r_[0.01, 0, 0, 0, 0, 0])

@@ -112,11 +112,13 @@ def tracker_config(recording: Recording, method: str, particles: int | None = No
     )
 
 
-def suggested_disable(run: str | Path) -> tuple[str, ...]:
+def suggested_disable(run: str | Path | Recording) -> tuple[str, ...]:
     """The switches a recording asks to be tracked without (recording.json ``suggested_disable``, a list of
-    ``--disable`` names; absent: none). ``demo`` and ``benchmark`` honour it; ``track`` uses its own ``--disable``."""
-    path = Path(run) / "recording.json"
-    value = read_recording(run).info.extra.get("suggested_disable", [])
+    ``--disable`` names; absent: none). ``demo`` and ``benchmark`` honour it; ``track`` uses its own ``--disable``.
+    ``run``: the run's directory, or the :class:`Recording` already read from it (not read a second time)."""
+    recording = run if isinstance(run, Recording) else read_recording(run)
+    path = recording.root / "recording.json"
+    value = recording.info.extra.get("suggested_disable", [])
     if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
         raise InputError('key "suggested_disable" must be a list of switch names', file=path)
     unknown = [v for v in value if v not in SWITCH_NAMES]

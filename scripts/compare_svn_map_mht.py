@@ -32,7 +32,7 @@ def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ..
         rec = read_recording(run)
         scenario = run.name.rsplit("-", 1)[0] if run.name.rsplit("-", 1)[-1].isdigit() else run.name
         for method in methods:
-            config = tracker_config(rec, method, disable=suggested_disable(run), seed=0)
+            config = tracker_config(rec, method, disable=suggested_disable(rec), seed=0)
             sc = score_run(rec, make_tracker(method, config))
             scores.setdefault(scenario, {}).setdefault(method, []).append(sc)
             print(f"{run.name:<16} {method:<6} {sc.trans_mm:8.2f} {sc.rot_deg:8.1f} {sc.kept:6.1%} {sc.bimodal:8.1%}",

@@ -155,12 +155,15 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
 
 def test_simulate_new_scenarios_and_suggested_disable(tmp_path: Path) -> None:
     from pinpoint_fg.errors import InputError
+    from pinpoint_fg.io.recording import read_recording
     from pinpoint_fg.track import suggested_disable
 
     for scenario in ("symmetric", "drive", "kinfault", "snapshots"):
         assert main(["simulate", "--scenario", scenario, "--frames", "4", "--out", str(tmp_path / scenario)]) == 0
     assert suggested_disable(tmp_path / "symmetric") == ("grasp-position", "grasp-perpendicular")
     assert suggested_disable(tmp_path / "drive") == ()
+    # a Recording already read gives the same answer without reading the run again
+    assert suggested_disable(read_recording(tmp_path / "symmetric")) == ("grasp-position", "grasp-perpendicular")
     doc = json.loads((tmp_path / "drive" / "recording.json").read_text())
     doc["suggested_disable"] = ["grasp"]
     (tmp_path / "drive" / "recording.json").write_text(json.dumps(doc))

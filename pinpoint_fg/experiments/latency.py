@@ -96,7 +96,7 @@ def lockstep(run: str | Path, specs: list[TrackerSpec], max_frames: int | None =
 
     recording = read_recording(run)
     if disable is None:
-        disable = suggested_disable(run)
+        disable = suggested_disable(recording)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]
     observations = [observe_frame(recording, rec, max_points=max_points) for rec in frames]
     trackers = {s.label: make_tracker(s.method, tracker_config(recording, s.method, s.particles, s.window,

@@ -471,7 +471,7 @@ class SvnTracker(Tracker):
                                             self.svn.polish_decrement, 2 * self.svn.modes.max_modes,
                                             self.svn.modes.map_starts,
                                             None if predicted is None else predicted.start(),
-                                            self.svn.modes.start_spacing)
+                                            self.svn.modes.start_spacing, self.svn.modes.separation)
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])

@@ -205,17 +205,18 @@ def test_settle_moves_each_compared_modes_best_hypothesis_to_its_peak_and_rescor
     assert np.allclose(settled.log_evidence[polished], z_fresh, atol=2e-3)
 
 
-def test_settle_joins_modes_whose_polished_peaks_coincide_keeping_the_better_evidence() -> None:
+def test_modes_whose_polished_peaks_coincide_are_reported_as_one_with_the_better_evidence() -> None:
     """The true circle's six hypotheses handed to settle as two modes (as clipped Gauss-Newton predictions split them
-    after a large motion): both representatives polish to one optimum, so the settled basins hold one mode there, with
-    all six members and the better of the two polished evidences; the twin stays a mode of its own. ``separation=0``
-    keeps the copy, which is what the tracker reported before (two modes 0.001-0.01 scaled units apart)."""
-    from pinpoint_fg.trackers.svn_modes import Basins, scaled_distance, settle
+    after a large motion): both representatives polish to one optimum. settle keeps the tracker's three groups;
+    join_coincident reports one mode there, with all six members and the better of the two polished evidences, and
+    the twin as a mode of its own. Basins without such a pair are returned as they are."""
+    from pinpoint_fg.trackers.svn_modes import Basins, join_coincident, scaled_distance, settle
 
     w, _ = _two_circle_window(np.random.default_rng(2))
     lin = w.linearize()
     found = basins(w.newest, lin, w.evidence)
     assert found.reps.shape == (2,)
+    assert join_coincident(found) is found
     true_mode = int(found.labels[0])
     rows = np.flatnonzero(found.labels == true_mode)
     assert rows.tolist() == [0, 1, 2, 3, 4, 5]
@@ -226,22 +227,24 @@ def test_settle_joins_modes_whose_polished_peaks_coincide_keeping_the_better_evi
     reps[true_mode] = best(rows[:3])
     split = Basins(found.log_evidence, found.peaks, labels, np.r_[reps, best(rows[3:])], found.converged)
 
-    w_copy = w.subset(np.arange(12))
-    kept, _, lin_k = settle(w_copy, w_copy.linearize(), split, iters=30, separation=0.0)
-    assert kept.reps.shape == (3,)
-    copies = kept.reps[[true_mode, 2]]
-    assert scaled_distance(w_copy.newest[copies[0]], w_copy.newest[copies[1]]) < 0.05  # one optimum, reached twice
+    settled, _, _ = settle(w, lin, split, iters=30)
+    assert settled.reps.shape == (3,)
+    copies = settled.reps[[true_mode, 2]]
+    assert scaled_distance(w.newest[copies[0]], w.newest[copies[1]]) < 0.05  # one optimum, reached twice
 
-    joined, polished, _ = settle(w, lin, split, iters=30)
+    joined = join_coincident(settled)
     assert joined.reps.shape == (2,)
     assert np.unique(joined.labels[rows]).size == 1 and joined.labels[6] != joined.labels[0]
-    assert np.array_equal(np.sort(polished), np.sort(kept.reps))  # the same polish, only the books differ
     m = int(joined.labels[0])
-    assert joined.mode_log_evidence[m] == pytest.approx(np.max(kept.mode_log_evidence[[true_mode, 2]]), abs=1e-9)
+    z_copies = settled.mode_log_evidence[[true_mode, 2]]
+    assert joined.mode_log_evidence[m] == np.max(z_copies)
+    assert joined.reps[m] == copies[int(np.argmax(z_copies))]
     assert np.all(joined.log_evidence[rows] == joined.mode_log_evidence[m])
-    assert joined.mode_log_evidence[1 - m] == pytest.approx(kept.mode_log_evidence[1 - true_mode], abs=1e-9)
+    assert joined.mode_log_evidence[1 - m] == settled.mode_log_evidence[1 - true_mode]
     assert np.all(joined.counts() == [6, 6])
-    assert np.all(joined.converged)
+    assert joined.weights[m] == pytest.approx(1.0 / (1.0 + np.exp(joined.mode_log_evidence[1 - m] - np.max(z_copies))))
+    # a tighter separation keeps modes apart that the default joins
+    assert join_coincident(settled, separation=0.0).reps.shape == (3,)
 
 
 def test_every_member_of_a_settled_mode_takes_its_peaks_books_after_the_next_marginalisation() -> None:

@@ -92,6 +92,7 @@ from pinpoint_fg.trackers.svn_modes import (
     allot,
     basins,
     book_sources,
+    join_coincident,
     propose,
     settle,
 )
@@ -471,7 +472,7 @@ class SvnTracker(Tracker):
                                             self.svn.polish_decrement, 2 * self.svn.modes.max_modes,
                                             self.svn.modes.map_starts,
                                             None if predicted is None else predicted.start(),
-                                            self.svn.modes.start_spacing, self.svn.modes.separation)
+                                            self.svn.modes.start_spacing)
             value[polished] = lin_r.value + self.window.evidence[polished]
         if self.svn.map_by_evidence:  # best hypothesis of the heaviest mode
             i = int(found.reps[int(np.argmax(found.mode_log_evidence))])
@@ -481,7 +482,7 @@ class SvnTracker(Tracker):
         particles = self.window.newest.copy()
         logp = -value
         spread = tangent_spread(particles[i], particles)  # :func:`~pinpoint_fg.trackers.base.summarize`'s, once
-        modes = self._modes(found, index, i, spread)
+        modes = self._modes(join_coincident(found, self.svn.modes.separation), index, i, spread)
         self._prev_map = i if index[i] == i else None
         if self.svn.modes.shared_books:  # applied after the next marginalisation (module docstring, step 7)
             self._books = book_sources(found, found.reps[np.isin(found.reps, polished)], index)

@@ -242,7 +242,8 @@ def test_the_early_stops_last_small_step_is_skipped_with_the_same_decision(frame
     assert np.all(np.isfinite(v_s))
 
 
-def test_no_two_reported_modes_share_a_peak(tmp_path) -> None:
+@pytest.mark.parametrize("method", ["svn", "svgd"])
+def test_no_two_reported_modes_share_a_peak(tmp_path, method: str) -> None:
     """Snapshots (0.5 s apart, no kinematics): clipped Gauss-Newton predictions split one basin into several groups,
     whose polished representatives meet at one optimum; the tracker reports them as one mode, so every pair of reported
     modes lies at least ``separation`` (2 scaled units: 10 deg, 2 mm) apart. Before the merge, 8 of these 12 frames
@@ -254,7 +255,7 @@ def test_no_two_reported_modes_share_a_peak(tmp_path) -> None:
     from pinpoint_fg.trackers.svn_modes import ModeSettings, scaled_distance
 
     rec = read_recording(simulate("snapshots", 12, seed=1, out=tmp_path / "run"))
-    tracker = make_tracker("svn", tracker_config(rec, "svn", disable=suggested_disable(rec), seed=0))
+    tracker = make_tracker(method, tracker_config(rec, method, disable=suggested_disable(rec), seed=0))
     several = 0
     for frame in rec.frames:
         est = tracker.step(observe_frame(rec, frame, max_points=200))

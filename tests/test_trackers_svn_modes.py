@@ -245,6 +245,16 @@ def test_modes_whose_polished_peaks_coincide_are_reported_as_one_with_the_better
     assert joined.weights[m] == pytest.approx(1.0 / (1.0 + np.exp(joined.mode_log_evidence[1 - m] - np.max(z_copies))))
     # a tighter separation keeps modes apart that the default joins
     assert join_coincident(settled, separation=0.0).reps.shape == (3,)
+    # the worse copy kept first (the tracker's MAP mode): it stays, with its own rep, and takes the better evidence
+    worse = [true_mode, 2][int(np.argmin(z_copies))]
+    kept_first = join_coincident(settled, first=worse)
+    mk = int(kept_first.labels[0])
+    assert kept_first.reps.shape == (2,) and kept_first.reps[mk] == settled.reps[worse]
+    assert kept_first.mode_log_evidence[mk] == np.max(z_copies)
+    # compared at the poses given: the copy reported 30 deg away is a mode of its own
+    peaks = settled.peaks[settled.reps].copy()
+    peaks[2] = peaks[2] @ se3_exp(np.r_[np.deg2rad(30.0), 0, 0, 0, 0, 0])
+    assert join_coincident(settled, peaks=peaks).reps.shape == (3,)
 
 
 def test_every_member_of_a_settled_mode_takes_its_peaks_books_after_the_next_marginalisation() -> None:

@@ -482,7 +482,12 @@ class SvnTracker(Tracker):
         particles = self.window.newest.copy()
         logp = -value
         spread = tangent_spread(particles[i], particles)  # :func:`~pinpoint_fg.trackers.base.summarize`'s, once
-        modes = self._modes(join_coincident(found, self.svn.modes.separation), index, i, spread)
+        # one mode per reported peak; the MAP's mode is reported at the MAP hypothesis, so it is compared there
+        m_map = int(found.labels[index[i]])
+        reported = found.peaks[found.reps].copy()
+        reported[m_map] = particles[i]
+        joined = join_coincident(found, self.svn.modes.separation, first=m_map, peaks=reported)
+        modes = self._modes(joined, index, i, spread)
         self._prev_map = i if index[i] == i else None
         if self.svn.modes.shared_books:  # applied after the next marginalisation (module docstring, step 7)
             self._books = book_sources(found, found.reps[np.isin(found.reps, polished)], index)

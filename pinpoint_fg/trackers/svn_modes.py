@@ -177,17 +177,28 @@ def basins(newest: np.ndarray, lin: Linearization, evidence: np.ndarray, setting
     P = newest @ se3_exp(step)
     N = P.shape[0]
     order = np.lexsort((np.arange(N), -np.nan_to_num(log_z, neginf=-1e300)))
-    labels = np.full(N, -1)
+    labels, reps = _greedy_groups(P, order, settings.separation)
+    return Basins(log_z, P, labels, reps, converged)
+
+
+def _greedy_groups(P: np.ndarray, order: np.ndarray | list[int], separation: float) -> tuple[np.ndarray, np.ndarray]:
+    """Group poses ``P (K, 4, 4)``, best first: ``(labels (K,), reps (G,))``.
+
+    In ``order``, each pose not yet grouped becomes a group's representative and takes every ungrouped pose within
+    ``separation`` scaled units of it; ``labels`` number the groups as ``reps`` lists them. :func:`basins` groups
+    hypotheses by their predicted peaks with it, :func:`join_coincident` the reported modes by their peaks.
+    """
+    labels = np.full(P.shape[0], -1)
     reps: list[int] = []
     for i in order:
         if labels[i] >= 0:
             continue
         free = np.flatnonzero(labels < 0)
-        close = free[scaled_distance(P[i], P[free]) < settings.separation]
+        close = free[scaled_distance(P[i], P[free]) < separation]
         labels[close] = len(reps)
         labels[i] = len(reps)
         reps.append(int(i))
-    return Basins(log_z, P, labels, np.asarray(reps, dtype=int), converged)
+    return labels, np.asarray(reps, dtype=int)
 
 
 def polish(sub: Window, lin: Linearization, iters: int, decrement: float = 1e-3) -> Linearization:
@@ -365,18 +376,11 @@ def join_coincident(found: Basins, separation: float = 2.0, first: int | None = 
     if M < 2:
         return found
     P = found.peaks[found.reps] if peaks is None else np.asarray(peaks, dtype=float)
-    dist = scaled_distance(P[:, None], P[None])
     order = [int(m) for m in np.argsort(-np.nan_to_num(z, nan=-np.inf, neginf=-1e300), kind="stable")]
     if first is not None:
         order = [int(first)] + [m for m in order if m != first]
-    into = np.arange(M)
-    kept: list[int] = []
-    for m in order:
-        near = [k for k in kept if dist[m, k] < separation]
-        if near:
-            into[m] = near[0]
-        else:
-            kept.append(m)
+    group, leaders = _greedy_groups(P, order, separation)
+    into = leaders[group]  # each mode's kept mode (itself when kept)
     keep = np.flatnonzero(into == np.arange(M))
     if keep.size == M:
         return found

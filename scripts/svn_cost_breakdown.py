@@ -2,7 +2,8 @@
 
 Usage: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_cost_breakdown.py RUN [--particles 50] [--window 1]
 [--frames mask|nomask|all] [--relin 0.5]`` (RUN e.g. from ``pinpoint-fg simulate --scenario normal --frames 150
---seed 1``).
+--seed 1``). The run is tracked without the switches it suggests (``suggested_disable``), as ``demo`` and
+``benchmark`` track it.
 Each part is wrapped with a thread-CPU timer (nested calls of one part are counted once; parts overlap:
 ``linearize`` inside the polish is also in ``polish``). CPU time of this thread, so other load on the machine
 matters less than for wall time. Slower than an unwrapped run by the wrappers' own cost (~1 %).
@@ -21,7 +22,7 @@ from pinpoint_fg import relinearize as relinearize_module
 from pinpoint_fg import window as window_module
 from pinpoint_fg.io.recording import read_recording
 from pinpoint_fg.observe import observe_frame
-from pinpoint_fg.track import make_tracker, tracker_config
+from pinpoint_fg.track import make_tracker, suggested_disable, tracker_config
 from pinpoint_fg.trackers import svn as svn_module
 from pinpoint_fg.trackers import svn_modes
 
@@ -72,7 +73,8 @@ def main() -> None:
     for owner, name, tag in PARTS:
         wrap(owner, name, tag)
     rec = read_recording(args.run)
-    tracker = make_tracker("svn", tracker_config(rec, "svn", args.particles, args.window, seed=0))
+    tracker = make_tracker("svn", tracker_config(rec, "svn", args.particles, args.window, seed=0,
+                                                   disable=suggested_disable(rec)))
     tracker.window.relin_threshold = args.relin
     n = 0
     for k, frame in enumerate(rec.frames):

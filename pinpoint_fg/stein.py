@@ -238,6 +238,22 @@ def median_bandwidth(xi_white: np.ndarray, floor: float) -> float:
 
 
 @functools.lru_cache(maxsize=16)
+def _ones(d: int) -> np.ndarray:
+    """``np.ones(d)``, built once per ``d`` (read-only): :func:`floor_hessians`' default fallback."""
+    out = np.ones(d)
+    out.flags.writeable = False
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _eye(d: int) -> np.ndarray:
+    """``np.eye(d)``, built once per ``d`` (read-only)."""
+    out = np.eye(d)
+    out.flags.writeable = False
+    return out
+
+
+@functools.lru_cache(maxsize=16)
 def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     """``np.triu_indices(n, k=1)``, computed once per ``n`` (read-only)."""
     rows, cols = np.triu_indices(n, k=1)
@@ -320,9 +336,12 @@ def floor_hessians(
     if H.ndim != 3 or H.shape[1] != H.shape[2]:
         raise InputError(f"Hessians must have shape (N, d, d), got {H.shape}", column="hess")
     n, d, _ = H.shape
-    fb = np.ones(d) if fallback is None else np.asarray(fallback, dtype=float)
-    if fb.shape != (d,) or not np.all(np.isfinite(fb)) or np.any(fb <= 0):
-        raise InputError("fallback must be (d,) finite and > 0", column="fallback")
+    if fallback is None:  # the default ones: valid by construction, built once per d
+        fb = _ones(d)
+    else:
+        fb = np.asarray(fallback, dtype=float)
+        if fb.shape != (d,) or not np.all(np.isfinite(fb)) or np.any(fb <= 0):
+            raise InputError("fallback must be (d,) finite and > 0", column="fallback")
     unfloored = _unfloored(H, eps, fb, min_info_rel)
     if unfloored is not None:
         return unfloored
@@ -367,7 +386,7 @@ def _unfloored(H: np.ndarray, eps: float, fb: np.ndarray, min_info_rel: float
     if not (fro > math.sqrt(d) * min_info_rel * fb.max()).all():
         return None
     try:
-        np.linalg.cholesky(Hs - (eps * _spectral_bound(Hs, fro))[:, None, None] * np.eye(d))
+        np.linalg.cholesky(Hs - (eps * _spectral_bound(Hs, fro))[:, None, None] * _eye(d))
     except np.linalg.LinAlgError:
         return None
     return Hs, np.linalg.inv(Hs)

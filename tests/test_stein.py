@@ -442,3 +442,18 @@ def test_backtracking_stops_an_overshooting_newton_step():
     safe = transport(x0, f, cfg, max_iters=3, stop=never, backtrack_drop=0.5, max_halvings=10)
     assert np.max(np.abs(safe.xi)) < np.max(np.abs(x0))
     assert np.all(safe.logp >= f(x0)[0].min() - 0.5 * 3)
+
+
+def test_floor_hessians_default_fallback_is_ones() -> None:
+    """The default fallback (built once, read-only) gives the bits of an explicit ``np.ones(d)``, on both paths
+    (the Cholesky-proved one and the eigen-decomposition), and is not changed by a call."""
+    rng = np.random.default_rng(37)
+    A = rng.normal(size=(9, 6, 6))
+    H = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(6)
+    H[2] = 0.0  # no information: the fallback row
+    H[5, 0, 0] = -3.0  # indefinite: a floor binds
+    for eps in (1e-2, 1e-9):
+        for h in (H, H[[0, 1, 3]]):
+            got, want = floor_hessians(h, eps), floor_hessians(h, eps, np.ones(6))
+            assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want, strict=True))
+    np.testing.assert_array_equal(floor_hessians(np.zeros((1, 6, 6)))[0][0], np.eye(6))

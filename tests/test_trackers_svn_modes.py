@@ -12,7 +12,7 @@ from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.summary import bimodal_from_modes
 from pinpoint_fg.trackers.base import TrackerConfig
 from pinpoint_fg.trackers.svn import FIRST_PRIOR_SIGMA, SvnTracker
-from pinpoint_fg.trackers.svn_modes import SCALE, ModeSettings, basins, laplace_terms
+from pinpoint_fg.trackers.svn_modes import SCALE, ModeSettings, basins, laplace_terms, scaled_distance
 from pinpoint_fg.window import Linearization, Window
 from tests.test_trackers_svn import CAM, NEEDLE, _ambiguous_scene, _grasper, _mode_shares
 
@@ -426,3 +426,14 @@ def test_extra_starts_are_the_lowest_cost_members_whose_predicted_peaks_lie_a_ke
     assert _extra_starts(found, 0, 0, cost, 3, spacing=1.0) == [4, 5]  # no third distinct peak
     assert _extra_starts(found, 0, 0, cost, 2, spacing=0.5) == [1, 2]  # 0.5 unit: the near members qualify
     assert _extra_starts(found, 0, 0, cost, 2, spacing=10.0) == []
+
+
+def test_scaled_distance_is_bitwise_the_norm_of_the_scaled_tangent() -> None:
+    """:func:`scaled_distance` (its inlined norm, equal-shape operands not broadcast) has the bits of
+    ``np.linalg.norm(local(A, B) / SCALE, axis=1)`` over the broadcast operands."""
+    rng = np.random.default_rng(36)
+    P = se3_exp(rng.normal(size=(12, 6)) * np.array([0.3] * 3 + [0.01] * 3))
+    for a, b in ((P[0], P), (P, P[::-1]), (P[3], P[3:4]), (P[:, None], P[None, :4])):
+        A, B = np.broadcast_arrays(a, b)
+        ref = np.linalg.norm(local(A.reshape(-1, 4, 4), B.reshape(-1, 4, 4)) / SCALE, axis=1).reshape(A.shape[:-2])
+        assert scaled_distance(a, b).tobytes() == ref.tobytes()

@@ -76,6 +76,10 @@ from pinpoint_fg.window_rows import copy_hypotheses
 #: Kernel scale S of the scaled tangent units: [omega x3 (rad), v x3 (m)] (svn.py's default).
 SCALE = np.array([np.deg2rad(5.0)] * 3 + [1e-3] * 3)
 
+#: ``np.outer(SCALE, SCALE)``, built once (read-only): scales an information matrix to the scaled units.
+_SCALE_OUTER = np.outer(SCALE, SCALE)
+_SCALE_OUTER.flags.writeable = False
+
 
 @dataclass(frozen=True)
 class ModeSettings:
@@ -144,19 +148,27 @@ class Basins:
 
 
 def scaled_distance(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
-    """``|Log(T_a^-1 T_b) / S|``: distance in scaled units, broadcast over leading axes."""
-    A, B = np.broadcast_arrays(np.asarray(T_a, dtype=float), np.asarray(T_b, dtype=float))
-    return np.linalg.norm(local(A.reshape(-1, 4, 4), B.reshape(-1, 4, 4)) / SCALE, axis=1).reshape(A.shape[:-2])
+    """``|Log(T_a^-1 T_b) / S|``: distance in scaled units, broadcast over leading axes.
+
+    The norm is ``np.linalg.norm(x, axis=1)``'s own formula, ``sqrt(add.reduce(x * x, axis=1))`` (the same bits),
+    without its generic dispatch; operands of equal shape skip the broadcast (the usual call compares one pose
+    with a few: per-call overhead is the cost).
+    """
+    A, B = np.asarray(T_a, dtype=float), np.asarray(T_b, dtype=float)
+    if A.shape != B.shape:
+        A, B = np.broadcast_arrays(A, B)
+    x = local(A.reshape(-1, 4, 4), B.reshape(-1, 4, 4)) / SCALE
+    return np.sqrt(np.add.reduce(x * x, axis=1)).reshape(A.shape[:-2])
 
 
 def laplace_terms(lin: Linearization, evidence: np.ndarray, max_step: float = 4.0
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Predicted peak step ``d (N, 6)``, peak cost ``m (N,)`` and log-evidence ``log Z (N,)`` (module docstring)."""
     S = SCALE
-    H_fl, Hinv = floor_hessians(lin.hess * np.outer(S, S), eps=1e-6)
+    H_fl, Hinv = floor_hessians(lin.hess * _SCALE_OUTER, eps=1e-6)
     gw = lin.grad * S
     step_w = -np.einsum("nij,nj->ni", Hinv, gw)
-    norm = np.linalg.norm(step_w, axis=1)
+    norm = np.sqrt(np.add.reduce(step_w * step_w, axis=1))  # = np.linalg.norm(step_w, axis=1), its formula
     step_w = step_w * np.minimum(1.0, max_step / np.maximum(norm, 1e-300))[:, None]
     # the quadratic model's decrease along the (clipped) step: exact GN prediction when not clipped
     drop = -np.einsum("ni,ni->n", gw, step_w) - 0.5 * np.einsum("ni,nij,nj->n", step_w, H_fl, step_w)

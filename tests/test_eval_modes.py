@@ -150,3 +150,22 @@ def test_reference_flag_and_a_reference_without_modes(setup, tmp_path: Path,  # 
     assert rep.evaluations[0].row["bimodal_modes_ref_single_rate"] == 0.0
     with pytest.raises(InputError, match="no modes.csv"):
         evaluate_results([mht], out=tmp_path / "e4", ambiguity=False, figures=False, reference=old)
+
+
+def test_a_single_mode_reference_is_refused_and_the_text_names_the_references_method(
+        setup, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
+    """A MAP result as ``--reference`` (one mode per frame: every frame "single-mode") is refused at its
+    result.json's ``method``; an SVN reference is accepted, and the rates line says SVN, not MHT."""
+    rec, mht, svn, base = setup
+    as_map = _write(tmp_path / "map", rec, "map", multi=set())
+    with pytest.raises(InputError, match="single-mode MAP") as exc:
+        evaluate_results([svn], out=tmp_path / "e", ambiguity=False, figures=False, reference=as_map)
+    assert exc.value.column == "method" and not (tmp_path / "e").exists()
+    capsys.readouterr()
+    assert main(["evaluate", str(svn), "--reference", str(as_map), "--out", str(tmp_path / "e1")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "result.json" in err[0] and "Traceback" not in err[0]
+    rep = evaluate_results([mht], out=tmp_path / "e2", ambiguity=False, figures=False, reference=svn)
+    assert "rates on frames the reference SVN calls" in rep.text and "reference MHT" not in rep.text
+    rep = evaluate_results([mht, svn], out=tmp_path / "e3", ambiguity=False, figures=False)
+    assert "rates on frames the reference MHT calls" in rep.text

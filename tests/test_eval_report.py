@@ -375,3 +375,37 @@ def test_ground_truth_in_the_wrong_unit_throughout_is_refused_before_the_output_
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "gt_z_m" in err[0] and "Traceback" not in err[0]
     assert not (tmp_path / "e2").exists()
+
+
+def _renamed(src: Path, dest: Path, name: str) -> Recording:
+    import shutil
+
+    shutil.copytree(src, dest)
+    info = json.loads((dest / "recording.json").read_text())
+    info["name"] = name
+    (dest / "recording.json").write_text(json.dumps(info))
+    return read_recording(dest)
+
+
+def test_recordings_whose_names_give_one_file_name_keep_their_own_figures(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    """``x y`` and ``x_y`` (one slug) and two all-non-ASCII names (both ``result``) each get their own figures; a
+    240-character name gives a bounded file name (it failed after half the files were written)."""
+    rec = setup[0]
+    names = ["x y", "x_y", "naïve: ü", "ü ö", "n" * 240]
+    recs = [_renamed(rec.root, tmp_path / f"run{i}", n) for i, n in enumerate(names)]
+    results = [_result_on(r, rec, tmp_path / f"r{i}") for i, r in enumerate(recs)]
+    rep = evaluate_results(results, out=tmp_path / "e", ambiguity=False)
+    error_time = sorted(p.name for p in (tmp_path / "e").iterdir() if p.name.startswith("error_time_"))
+    assert len(error_time) == len(names) == len(set(error_time))
+    assert all(len(n) <= 120 for n in error_time)
+    assert len([p for p in rep.files if p.name.startswith("error_time_")]) == len(names)
+
+
+def test_file_stems_are_distinct_bounded_and_stable() -> None:
+    from pinpoint_fg.eval.report import SLUG_MAX, _slug, _Stems
+
+    stems = _Stems()
+    assert [stems(t) for t in ("x y", "x_y", "x y", "ü", "ö")] == ["x_y", "x_y-2", "x_y", "result", "result-2"]
+    a, b = "a" * 200 + "1", "a" * 200 + "2"
+    assert len(_slug(a)) == SLUG_MAX and _slug(a) != _slug(b) and _slug(a) == _slug(a)
+    assert stems("p_q", key=("p", "q")) != stems("p_q", key=("p_q", ""))

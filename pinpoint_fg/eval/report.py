@@ -45,6 +45,7 @@ PNG figures (:mod:`pinpoint_fg.eval.plots`): ``errors.png``, ``error_time_<resul
 from __future__ import annotations
 
 import csv
+import hashlib
 import math
 import os
 import re
@@ -237,6 +238,8 @@ class ResultEvaluation:
     """The summary.csv row."""
     modes: ResultModes | None = None
     """The result's posterior modes (weights over time, peaks), None when not computed."""
+    reference_method: str = ""
+    """The method of the multi-hypothesis reference its modes rates were judged against ("" without one)."""
 
 
 def _recording_for(res: Result, given: Recording | None, cache: dict[Path, Recording]) -> Recording:
@@ -346,8 +349,8 @@ def _mean(x: np.ndarray) -> float:
     return float(np.mean(x)) if x.size else float("nan")
 
 
-#: A reference for the modes rates: (result path, frames (R,), sorted mode weights (R, K)).
-Reference = tuple[str, np.ndarray, np.ndarray]
+#: A reference for the modes rates: (result path, frames (R,), sorted mode weights (R, K), its method).
+Reference = tuple[str, np.ndarray, np.ndarray, str]
 
 
 def _evaluate_one(
@@ -430,6 +433,7 @@ def _evaluate_one(
         result=res, recording=recording, method=res.method, variant=variant, label=label, T_gt=T_gt,
         has_gt=has_gt, errors=errors, bimodal=bimodal, assessed=assessed, ashman_d=ashman, labels=labels,
         floor_errors=floor, occlusion=occlusion, row=row, modes=modes,
+        reference_method="" if reference is None else reference[3],
     )
 
 
@@ -608,7 +612,9 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
         ))
     if any(ev.row.get("reference") for ev in evals) or any(np.isfinite(ev.row["bimodal_modes_share"])
                                                          for ev in evals):
-        lines += ["", "modes (second mode >= 0.1); rates on frames the reference MHT calls multimodal / single-mode:"]
+        ref_methods = sorted({ev.reference_method for ev in evals if ev.reference_method}) or ["mht"]
+        lines += ["", f"modes (second mode >= 0.1); rates on frames the reference {'/'.join(ref_methods).upper()} "
+                  "calls multimodal / single-mode:"]
         lines += _per_result(evals, lambda r: (
             f"bimodal GMM {_pct(r['bimodal_share'])}, modes "
             f"{_pct(r['bimodal_modes_share'])}; truth kept modes {_pct(r['truth_kept_modes_share'])}, "
@@ -647,11 +653,44 @@ def coverage_text(evals: Sequence[ResultEvaluation], source: str) -> str:
 # figures
 
 
+#: Longest file-name slug (:func:`_slug`): figure names stay far below the usual 255-byte file-name limit.
+SLUG_MAX = 64
+
+
 def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "result"
+    """A file-name-safe form of ``text``: each run of other characters than ``A-Za-z0-9._-`` becomes ``_`` (empty:
+    ``result``). A longer one than :data:`SLUG_MAX` keeps its head and a hash of the whole text, so two long names
+    still differ (a 240-character recording name failed ``evaluate`` after half its files were written)."""
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "result"
+    if len(slug) > SLUG_MAX:
+        slug = f"{slug[:SLUG_MAX - 9]}-{hashlib.sha1(text.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
+    return slug
 
 
-def _cloud_figure(evals: Sequence[ResultEvaluation], out: Path) -> list[Path]:
+class _Stems:
+    """Distinct file-name stems for distinct texts: :func:`_slug`, then ``-2``, ``-3``, ... in the order asked where
+    two texts' slugs coincide (recordings named ``x y`` and ``x_y``; every all-non-ASCII name is ``result``), so that
+    no figure overwrites another's file."""
+
+    def __init__(self) -> None:
+        self._of: dict[object, str] = {}
+        self._taken: set[str] = set()
+
+    def __call__(self, text: str, key: object = None) -> str:
+        """The stem of ``text``; ``key`` (default ``text``) tells texts apart (a pair of names joined into one text
+        can equal another pair's)."""
+        key = text if key is None else key
+        if key not in self._of:
+            base = stem = _slug(text)
+            k = 2
+            while stem in self._taken:
+                stem, k = f"{base}-{k}", k + 1
+            self._of[key] = stem
+            self._taken.add(stem)
+        return self._of[key]
+
+
+def _cloud_figure(evals: Sequence[ResultEvaluation], out: Path, stems: _Stems) -> list[Path]:
     paths = []
     by_rec: dict[str, list[ResultEvaluation]] = {}
     for ev in evals:
@@ -685,12 +724,18 @@ def _cloud_figure(evals: Sequence[ResultEvaluation], out: Path) -> list[Path]:
             panels.append(plots.CloudPanel(label=ev.label, scaled_xi=X, verdict=v))
         label = "ambiguous" if best_key[0] else "no ambiguous frame; most separated"
         title = f"{rec_name}, frame {best} ({label})"
-        paths.append(plots.particle_cloud(panels, title, out / f"particle_cloud_{_slug(rec_name)}.png"))
+        paths.append(plots.particle_cloud(panels, title, out / f"particle_cloud_{stems(rec_name)}.png"))
     return paths
 
 
 def _figures(evals: Sequence[ResultEvaluation], out: Path) -> list[Path]:
     paths: list[Path] = []
+    recs, labels, pairs = _Stems(), _Stems(), _Stems()  # file-name stems: distinct figures never share a file
+
+    def pair(ev: ResultEvaluation) -> str:
+        name = ev.recording.info.name
+        return pairs(f"{recs(name)}_{labels(ev.label)}", key=(name, ev.label))
+
     groups: dict[str, list[plots.MethodErrors]] = {}
     for ev in evals:
         g = ev.has_gt & np.isfinite(ev.errors.trans_m)
@@ -704,22 +749,22 @@ def _figures(evals: Sequence[ResultEvaluation], out: Path) -> list[Path]:
         paths.append(plots.error_over_time(
             res.t_s, 1e3 * ev.errors.trans_m, np.degrees(ev.errors.rot_rad), 1e3 * res.q95_trans_m,
             np.degrees(res.q95_rot_rad), ev.occlusion, f"{ev.label} on {ev.recording.info.name}",
-            out / f"error_time_{_slug(ev.recording.info.name)}_{_slug(ev.label)}.png", bimodal=ev.bimodal,
+            out / f"error_time_{pair(ev)}.png", bimodal=ev.bimodal,
             floor_trans_mm=1e3 * ev.floor_errors.trans_m, floor_rot_deg=np.degrees(ev.floor_errors.rot_rad),
         ))
-    paths += _cloud_figure(evals, out)
+    paths += _cloud_figure(evals, out, recs)
     for ev in evals:
         if ev.modes is not None and ev.modes.has_modes.any():
             paths.append(plots.mode_weights_over_time(
                 ev.result.t_s, ev.modes.weights, f"mode weights: {ev.label} on {ev.recording.info.name}",
-                out / f"modes_time_{_slug(ev.recording.info.name)}_{_slug(ev.label)}.png",
+                out / f"modes_time_{pair(ev)}.png",
             ))
     for rec_name, evs in _ablation_groups(evals).items():
         names = [_variant_title(ev.variant) for ev in evs]
         ref = next((i for i, ev in enumerate(evs) if ev.variant == "full"), None)
         paths.append(plots.ablation_bars(
             names, [ev.row["trans_mean_mm"] for ev in evs], [ev.row["rot_mean_deg"] for ev in evs],
-            f"Ablations on {rec_name}", out / f"ablation_{_slug(rec_name)}.png", reference=ref,
+            f"Ablations on {rec_name}", out / f"ablation_{recs(rec_name)}.png", reference=ref,
         ))
     return paths
 
@@ -779,7 +824,8 @@ def evaluate_results(
     ``progress(message)`` is called at each stage when given.
     ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
     bimodal verdicts of the results of the same recording (a reference of none of their recordings is an
-    :class:`InputError`); without it, the first ``mht`` result of each recording among ``results`` is used.
+    :class:`InputError`, and so is a single-mode ``map`` result, which calls every frame single-mode; the text
+    names the reference's method); without it, the first ``mht`` result of each recording among ``results`` is used.
     ``spread_scale`` (:mod:`pinpoint_fg.io.spread_scale`): every result's q95 columns are multiplied
     by its method's factors before any metric or figure uses them (the files are not changed); the rows gain
     ``spread_kappa_trans`` / ``_rot`` and the raw coverage ``coverage_raw_trans`` / ``_rot``, and the text a
@@ -827,6 +873,10 @@ def evaluate_results(
         if not (ref_res.root / MODES_CSV).exists():
             raise InputError("the reference has no modes.csv (give a multi-hypothesis result)",
                              file=ref_res.root / MODES_CSV)
+        if ref_res.method == "map":  # one mode per frame: every rate against it would read "single-mode"
+            raise InputError("the reference is a single-mode MAP result, which calls every frame single-mode; give a "
+                             "multi-hypothesis result (mht; or svn, svgd, pf)", file=ref_res.root / "result.json",
+                             column="method")
         ref_name = str(ref_res.info["recording_name"])
         names_evaluated = sorted({rec.info.name for _, rec, _, _ in loaded})
         if ref_name not in names_evaluated:  # it would judge nothing: every rate against it silently empty
@@ -835,7 +885,7 @@ def evaluate_results(
                              column="recording_name")
         check_tracked_on(ref_res, next(rec for _, rec, _, _ in loaded if rec.info.name == ref_name))
         rm = modes_of_result(ref_res)
-        refs[ref_name] = (str(ref_res.root), ref_res.frame, rm.weights)
+        refs[ref_name] = (str(ref_res.root), ref_res.frame, rm.weights, ref_res.method)
 
     say("modes")  # before the long computations too: a modes.csv that lacks frames is refused at once
     modes = [modes_of_result(res) for res, _, _, _ in loaded]
@@ -865,7 +915,7 @@ def evaluate_results(
     if reference is None:
         for (res, rec, _, _), m in zip(loaded, modes, strict=True):
             if res.method == "mht" and m.source == "modes.csv" and rec.info.name not in refs:
-                refs[rec.info.name] = (str(res.root), res.frame, m.weights)
+                refs[rec.info.name] = (str(res.root), res.frame, m.weights, res.method)
 
     names: dict[str, int] = {}
     evals = []

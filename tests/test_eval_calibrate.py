@@ -252,6 +252,25 @@ def test_ground_truth_that_does_not_describe_its_frame_is_left_out(tmp_path: Pat
     assert "left out" in capsys.readouterr().err
 
 
+def test_ground_truth_placed_beside_its_needle_is_left_out(tmp_path: Path) -> None:
+    """0.5 m typed for 0.5 mm in one gt_x_m cell and a depth five times too small in another (anchor std 144 mm and
+    a motion std of 16 mm before): both frames are left out, the calibration equals that with their gt cleared."""
+    src = simulate("calibration", 40, seed=1, out=tmp_path / "run", config=WHITE)
+    rec = read_recording(src)
+    bad = {}
+    T = rec.frames[6].cam_T_needle_gt.copy()
+    T[0, 3] = 0.5
+    bad[rec.frames[6].frame] = T
+    T = rec.frames[20].cam_T_needle_gt.copy()
+    T[2, 3] *= 0.2
+    bad[rec.frames[20].frame] = T
+    run = _with_gt(src, tmp_path / "beside", bad)
+    notes: list[str] = []
+    noise = calibrate_runs([run], notes=notes)
+    assert noise.to_json() == calibrate_runs([_with_gt(src, tmp_path / "cleared", dict.fromkeys(bad))]).to_json()
+    assert len(notes) == 1 and "2 ground-truth frame(s) left out" in notes[0] and "sizes away" in notes[0]
+
+
 def test_ground_truth_in_the_wrong_unit_throughout_is_refused(tmp_path: Path,
                                                              capsys: pytest.CaptureFixture) -> None:
     """Every gt translation 100x too large (centimetres typed as metres): nothing is left to calibrate from, and

@@ -409,3 +409,28 @@ def test_file_stems_are_distinct_bounded_and_stable() -> None:
     a, b = "a" * 200 + "1", "a" * 200 + "2"
     assert len(_slug(a)) == SLUG_MAX and _slug(a) != _slug(b) and _slug(a) == _slug(a)
     assert stems("p_q", key=("p", "q")) != stems("p_q", key=("p_q", ""))
+
+
+def test_ground_truth_placed_beside_its_needle_is_left_out_of_the_scores(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    """0.5 m typed for 0.5 mm in one gt_x_m cell (the needle ~10,000 px beside where its image shows it: the mean
+    translation error read 41.9 mm instead of 1.0) and one depth of 1e-9 m (a seen point behind the camera): both
+    frames are scored as without truth, and the note names their rows and why."""
+    rec = setup[0]
+    bad = {}
+    T = rec.frames[4].cam_T_needle_gt.copy()
+    T[0, 3] = 0.5
+    bad[rec.frames[4].frame] = T
+    T = rec.frames[7].cam_T_needle_gt.copy()
+    T[2, 3] = 1e-9  # the circle through the camera centre: a point the image shows lies behind it
+    bad[rec.frames[7].frame] = T
+    run = _run_with_gt(rec.root, tmp_path / "beside", bad)
+    cleared = _run_with_gt(rec.root, tmp_path / "cleared", dict.fromkeys(bad))
+    rep_bad = evaluate_results([_result_on(run, rec, tmp_path / "r_bad")], out=tmp_path / "e_bad", figures=False)
+    rep_ok = evaluate_results([_result_on(cleared, rec, tmp_path / "r_ok")], out=tmp_path / "e_ok", figures=False)
+    for k in ("trans_mean_mm", "rot_mean_deg", "coverage_trans", "nlls_trans"):
+        assert rep_bad.evaluations[0].row[k] == rep_ok.evaluations[0].row[k], k
+    assert rep_bad.evaluations[0].row["trans_mean_mm"] == pytest.approx(1.0, abs=1e-9)
+    assert rep_bad.evaluations[0].row["gt_left_out_frames"] == 2
+    note = next(line for line in rep_bad.text.splitlines() if line.startswith("note:"))
+    assert f"{run.row_of(run.frames[4])} (" in note and "sizes away" in note
+    assert f"{run.row_of(run.frames[7])} (" in note and "behind the camera" in note

@@ -31,8 +31,9 @@ Choices the paper leaves open:
   time: the sampling error of their covariance is set by the number of *independent* stretches
   (run length / correlation time), not by the frame count. Calibrate on long, varied runs.
 * A ground-truth pose whose needle would look far smaller than the frame's image measurements
-  show it (:mod:`pinpoint_fg.eval.gt_scale`: a depth typed in the wrong unit, a failed board
-  detection) does not describe that frame: its residuals are those of another pose. Such frames
+  show it, or lie far from where they show it (:mod:`pinpoint_fg.eval.gt_scale`: a depth typed in the
+  wrong unit, a metre typed for a millimetre in one cell, a failed board detection) does not describe
+  that frame: its residuals are those of another pose. Such frames
   are left out and named (``skipped``); when every ground-truth frame of a run that it can test
   is, the run is refused (:class:`InputError` at its first such row, ``gt_z_m``). Three such frames among forty
   (depth 9.9 m) had given an anchor std of 2.6 m and a conic std of 11 px (1.2 px without them).
@@ -52,11 +53,12 @@ import numpy as np
 from factors import residuals as res
 from factors.conic_correlation import arc_order
 from pinpoint_fg.errors import InputError, path_list, refuse_repeated
-from pinpoint_fg.eval.gt_scale import GT_SCALE_GATE, gt_scale_ratio, left_out_note, refuse_all_left_out
+from pinpoint_fg.eval.gt_scale import GtMismatch, gt_mismatch, left_out_note, refuse_all_left_out, seen_point_behind
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import FrameRecord, Recording
 from pinpoint_fg.likelihood import CONIC_DISTANCES
 from pinpoint_fg.noise import RESIDUAL_DIMS, NoiseConfig, ResidualNoise
+from pinpoint_fg.observation import Observation
 from pinpoint_fg.observe import observe_frame
 
 #: Relative eigenvalue floor applied to a singular sample covariance.
@@ -65,17 +67,16 @@ COV_REL_FLOOR = 1e-12
 COV_ABS_FLOOR = 1e-30
 
 
-def _in_front(recording: Recording, rec: FrameRecord, T: np.ndarray, points: list) -> None:
-    """:class:`InputError` at the frame's ``gt_z_m`` when a needle point seen in its image (``(name, point in the
-    needle frame, observation or None)``) lies at a depth <= :data:`factors.residuals.MIN_DEPTH_M`: the image
+def _in_front(recording: Recording, rec: FrameRecord, T: np.ndarray, obs: Observation) -> None:
+    """:class:`InputError` at the frame's ``gt_z_m`` when a needle point seen in its image lies at a depth <=
+    :data:`factors.residuals.MIN_DEPTH_M` (:func:`~pinpoint_fg.eval.gt_scale.seen_point_behind`): the image
     residuals there are those of its mirror image (a conic cannot tell them apart), and calibrating on them
     silently inflated the noise (one such frame of eight: tip std 0.6 -> 42 px)."""
-    for name, p_needle, seen in points:
-        z = float(T[2, :3] @ p_needle + T[2, 3])
-        if seen is not None and z <= res.MIN_DEPTH_M:
-            raise InputError(f"the ground truth puts the needle's {name} at depth {z:.3g} m, not in front of the "
-                             "camera that sees it; correct the gt_* cells or clear them", file=recording.csv_path,
-                             row=recording.row_of(rec), column="gt_z_m")
+    behind = seen_point_behind(recording, T, obs.tip_px, obs.tail_px, obs.backbone_px)
+    if behind is not None:
+        raise InputError(f"the ground truth puts the needle's {behind.detail} at depth {behind.value:.3g} m, not in "
+                         "front of the camera that sees it; correct the gt_* cells or clear them",
+                         file=recording.csv_path, row=recording.row_of(rec), column="gt_z_m")
 
 
 
@@ -88,10 +89,10 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
     receives each masked frame's ``(backbone pixels (M, 2), residuals (M,))``. ``conic_distance``: the backbone
     residual's, "sampson" (:func:`factors.residuals.conic_residual`) or "geometric"
     (:func:`factors.residuals.conic_geometric_residual`): calibrate with the one you track with. ``skipped``: a
-    list that receives ``(frame record, ratio)`` of each ground-truth frame left out by the scale gate (module
-    docstring). Raises :class:`InputError` naming the run when no frame has ground truth, naming the row when a
-    frame's ground truth puts a needle point its image shows behind the camera, and naming the first such row
-    when the scale gate leaves out every ground-truth frame that it could test.
+    list that receives ``(frame record, why)`` of each ground-truth frame left out by the tests of
+    :mod:`pinpoint_fg.eval.gt_scale`. Raises :class:`InputError` naming the run when no frame has ground truth,
+    naming the row when a frame's ground truth puts a needle point its image shows behind the camera, and naming
+    the first such row when those tests leave out every ground-truth frame that they could test.
     """
     if not recording.has_ground_truth:
         raise InputError("no frame has ground truth (gt_* columns): cannot calibrate", file=recording.root)
@@ -102,7 +103,7 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
     K = cam.K
     out: dict[str, list[np.ndarray]] = {k: [] for k in RESIDUAL_DIMS}
     prev = None  # previous FrameRecord
-    left_out: list[tuple[FrameRecord, float]] = []
+    left_out: list[tuple[FrameRecord, GtMismatch]] = []
     passed = 0  # frames the gate could test and kept
     for rec in recording.frames:
         T = rec.cam_T_needle_gt
@@ -110,14 +111,13 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
             prev = None
             continue
         obs = observe_frame(recording, rec)
-        _in_front(recording, rec, T, [("tip", nd.tip_m, obs.tip_px), ("tail", nd.tail_m, obs.tail_px),
-                                      ("centre", np.zeros(3), obs.backbone_px)])
-        ratio = gt_scale_ratio(recording, T, obs.tip_px, obs.tail_px, obs.backbone_px)
-        if ratio is not None and ratio > GT_SCALE_GATE:
-            left_out.append((rec, ratio))
+        _in_front(recording, rec, T, obs)
+        why, tested = gt_mismatch(recording, T, obs.tip_px, obs.tail_px, obs.backbone_px)
+        if why is not None:
+            left_out.append((rec, why))
             prev = None  # nor the motion residuals that would pair it with its neighbours
             continue
-        passed += ratio is not None
+        passed += tested
         if obs.tip_px is not None:
             out["tip"].append(res.keypoint_residual(T, K, nd.tip_m, obs.tip_px)[0])
         if obs.tail_px is not None:
@@ -231,7 +231,7 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distan
     """Calibrated noise of every residual type from the ground truth of ``runs`` (module docstring); with
     ``fit_correlation`` also the backbone residuals' correlation length along the arc; ``conic_distance``: the
     backbone residual's (:func:`residuals_at_truth`). ``notes`` receives one line per run with ground-truth
-    frames left out by the scale gate (the count and the first rows).
+    frames left out by the ground-truth tests (the count and the first rows).
 
     Raises :class:`InputError` naming the run when a run cannot be read or has no ground truth, or is given twice.
     """
@@ -243,7 +243,7 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distan
     conic_frames: list[tuple[np.ndarray, np.ndarray]] = []
     for run in runs:
         recording = read_recording(run)
-        skipped: list[tuple[FrameRecord, float]] = []
+        skipped: list[tuple[FrameRecord, GtMismatch]] = []
         samples = residuals_at_truth(recording, conic_frames if fit_correlation else None, conic_distance, skipped)
         if skipped and notes is not None:
             notes.append(left_out_note(recording, skipped))

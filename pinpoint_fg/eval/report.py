@@ -26,7 +26,8 @@ truth:
   filtered estimates' on the same frames (:func:`smoothed_accuracy`).
 
 Ground truth that does not describe its frame (:mod:`pinpoint_fg.eval.gt_scale`: the needle it puts in
-view several times smaller than the frame's keypoints and mask show it, e.g. a depth in centimetres) is
+view several times smaller than the frame's keypoints and mask show it, e.g. a depth in centimetres, or far
+from where they show it, e.g. a metre typed for a millimetre in one cell, or a seen point behind the camera) is
 left out of every score, counted in ``gt_left_out_frames`` and named in one ``note:`` line of the text;
 a recording whose every checkable ground-truth frame fails is refused (exit 2 from the CLI), before
 ``out`` is created.
@@ -357,7 +358,8 @@ def _evaluate_one(
     res: Result, recording: Recording, amb: RecordingAmbiguity, variant: str, label: str,
     modes: ResultModes | None = None, reference: Reference | None = None, gt_left_out: set[int] | None = None,
 ) -> ResultEvaluation:
-    """One result's metrics; ``gt_left_out``: frame numbers whose ground truth the scale gate left out
+    """One result's metrics; ``gt_left_out``: frame numbers whose ground truth the tests of
+    :mod:`~pinpoint_fg.eval.gt_scale` left out
     (:mod:`~pinpoint_fg.eval.gt_scale`), scored as frames without ground truth."""
     idx = _rows_in_recording(res, recording)
     F = len(res)
@@ -980,7 +982,7 @@ def partial_text(evals: Sequence[ResultEvaluation], pairs: Sequence[tuple[Result
 def no_truth_text(evals: Sequence[ResultEvaluation]) -> str:
     """A line per result whose recording has no ground-truth pose on any frame (its table row reads "0 frames" and
     dashes, which alone looked like a failure): only its verdicts and timings are reported. Ground truth left out
-    by the scale gate has its own note (:func:`~pinpoint_fg.eval.gt_scale.left_out_note`)."""
+    by :mod:`~pinpoint_fg.eval.gt_scale`'s tests has its own note (:func:`~pinpoint_fg.eval.gt_scale.left_out_note`)."""
     lines = [f"no ground truth: {ev.label} on {ev.recording.info.name} ({ev.result.root}): none of its "
              f"{len(ev.has_gt)} frames has a ground-truth pose (frames.csv gt_* cells), so its errors, q95 "
              "coverage and NLL are not scored; only its verdicts and timings are"

@@ -16,6 +16,7 @@ import pinpoint_fg
 from factors.lie import se3_exp
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.estimate import Estimate
+from pinpoint_fg.io.result.particles import JOURNAL_HEADER_BYTES, journal_dtype
 from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.io.result.schema import ESTIMATE_COLUMNS, PARTICLES_JOURNAL
 from pinpoint_fg.io.result.writer import ResultWriter
@@ -333,3 +334,42 @@ def test_particles_npz_is_validated(result_dir: Path) -> None:
     path.write_bytes(b"PK\x03\x04 not really a zip")
     with pytest.raises(InputError, match="particles.npz"):
         read_result(result_dir)
+
+
+@pytest.mark.parametrize(("value", "words"), [(0.0, "are all zero"), (1e308, "sum to infinity")])
+def test_particles_npz_frame_weights_must_have_a_positive_finite_sum(result_dir: Path, value: float,
+                                                                    words: str) -> None:
+    # all zero was "column 'weights'" from the bimodality test with no file or row; every weight 1e308 (each one
+    # finite, the sum inf) was NumPy's overflow warning there and a bimodal rate computed from NaNs, exit 0
+    path = result_dir / "particles.npz"
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["weight"] = arrays["weight"].copy()
+    arrays["weight"][2] = value
+    np.savez(path, **arrays)
+    with pytest.raises(InputError) as info:
+        read_result(result_dir)
+    err = info.value
+    assert Path(err.file).name == "particles.npz" and err.row == 3 and err.column == "weight"
+    assert words in str(err) and f"frame {int(arrays['frame'][2])}" in str(err)
+
+
+@pytest.mark.parametrize("value", [0.0, 1e308])
+def test_particles_journal_frame_weights_must_have_a_positive_finite_sum(tmp_path: Path, value: float) -> None:
+    out = tmp_path / "res"
+    w = open_writer(out, npz_large_bytes=0, npz_min_interval_s=1e9)  # the npz lags: frames 2.. come from the journal
+    for e in make_estimates(4):
+        w.write(e)
+    # no close(): the process could die here
+    path = out / PARTICLES_JOURNAL
+    data = bytearray(path.read_bytes())
+    dt = journal_dtype(N, True)
+    rec = np.frombuffer(data, dtype=dt, count=4, offset=JOURNAL_HEADER_BYTES).copy()
+    rec["weight"][2] = value
+    data[JOURNAL_HEADER_BYTES:JOURNAL_HEADER_BYTES + rec.nbytes] = rec.tobytes()
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError) as info:
+        read_result(out)
+    err = info.value
+    assert Path(err.file).name == PARTICLES_JOURNAL and err.row == 3 and err.column == "weight"
+    w.close()

@@ -132,6 +132,8 @@ def test_weights_are_honoured() -> None:
         assess_bimodality(P, T_MAP, weights=np.ones(10))
     with pytest.raises(InputError):
         assess_bimodality(P, T_MAP, weights=np.zeros(300))
+    with pytest.raises(InputError, match="finite sum"):  # each finite, the sum inf: was an overflow warning
+        assess_bimodality(P, T_MAP, weights=np.full(300, 1e308))
 
 
 def test_degenerate_sets_are_unimodal() -> None:

@@ -200,8 +200,11 @@ def assess_bimodality(
         w = np.asarray(weights, dtype=float)
         if w.shape != (n,):
             raise InputError(f"weights has shape {w.shape}, expected ({n},)", column="weights")
-        if not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
-            raise InputError("weights must be finite, non-negative and not all zero", column="weights")
+        with np.errstate(over="ignore"):  # finite weights summing to inf (1e308 each) were an overflow warning
+            total = w.sum()
+        if not np.all(np.isfinite(w)) or np.any(w < 0) or not 0 < total < np.inf:
+            raise InputError("weights must be finite, non-negative, not all zero and have a finite sum",
+                             column="weights")
         X = X[systematic_resample(w, min(n, max_points), rng)]
     elif n > max_points:
         X = X[systematic_resample(np.ones(n), max_points, rng)]

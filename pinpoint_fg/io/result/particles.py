@@ -3,7 +3,8 @@
 ``particles.journal`` is a 32-byte header (magic, N, weighted, reserved; little-endian int64) and one
 fixed-size record per frame (:func:`journal_dtype`), appended and flushed as each frame is written;
 a torn last record is ignored on reading. Readers check every array (shapes, finiteness, unit
-quaternions, non-negative weights) and refuse an npz whose headers declare more data than it holds.
+quaternions, non-negative weights with a positive, finite sum per frame) and refuse an npz whose headers
+declare more data than it holds.
 """
 
 from __future__ import annotations
@@ -199,6 +200,17 @@ def _check_particle_arrays(path: Path, arrays: dict[str, np.ndarray], weighted: 
         if np.any(bad):
             raise InputError("contains negative, NaN or infinite weights", file=path, row=first_bad(bad),
                              column="weight")
+        # Decision: a frame's weights must have a positive, finite sum, as the writer's normalised weights do. All
+        # zero was "column 'weights'" from the bimodality test with no file or row; finite weights summing to inf
+        # (every one 1e308) were NumPy's overflow warning there and a bimodal rate computed from NaNs, exit 0.
+        with np.errstate(over="ignore"):
+            total = weight.sum(axis=1)
+        bad = ~(np.isfinite(total) & (total > 0))
+        if np.any(bad):
+            r = int(np.argmax(bad))
+            why = "are all zero" if total[r] == 0 else "sum to infinity (too large to normalise)"
+            raise InputError(f"the weights of frame {int(frame[r])} {why}; a frame's weights must have a positive, "
+                             "finite sum", file=path, row=r + 1, column="weight")
     if F:
         T = pose_from_xyz_quat(xyz.astype(float), arrays["quat_wxyz"].astype(float))
     else:

@@ -321,10 +321,10 @@ def test_particles_npz_is_validated(result_dir: Path) -> None:
     with pytest.raises(InputError, match="allow_pickle=False"):
         read_result(result_dir)
 
-    np.savez(path, **{k: v for k, v in arrays.items() if k != "weight"})
+    np.savez(path, **{k: v for k, v in arrays.items() if k != "weight"})  # result.json says weighted
     with pytest.raises(InputError) as info:
         read_result(result_dir)
-    assert info.value.column == "weight"
+    assert info.value.column == "weighted" and "particles.npz holds no per-particle weights" in str(info.value)
 
     np.savez(path, **dict(arrays, frame=arrays["frame"][::-1].copy()))
     with pytest.raises(InputError) as info:
@@ -372,4 +372,42 @@ def test_particles_journal_frame_weights_must_have_a_positive_finite_sum(tmp_pat
         read_result(out)
     err = info.value
     assert Path(err.file).name == PARTICLES_JOURNAL and err.row == 3 and err.column == "weight"
+    w.close()
+
+
+@pytest.mark.parametrize("flag", [False, True])
+def test_result_json_weighted_must_agree_with_the_particles(tmp_path: Path, flag: bool) -> None:
+    # "weighted": false over a particle filter's weights was evaluated with the weights ignored (bimodal rate
+    # 17 % -> 8 %, exit 0); true over unweighted particles was "missing required array" blaming particles.npz
+    out = tmp_path / "res"
+    with open_writer(out, weighted=not flag) as w:
+        for e in make_estimates(3, weighted=not flag):
+            w.write(e)
+    path = out / "result.json"
+    doc = json.loads(path.read_text())
+    doc["weighted"] = flag
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as info:
+        read_result(out)
+    err = info.value
+    assert Path(err.file).name == "result.json" and err.column == "weighted" and err.row is None
+    assert f"is {str(flag).lower()} but particles.npz holds" in str(err)
+
+
+def test_result_json_weighted_must_agree_with_the_journal(tmp_path: Path) -> None:
+    out = tmp_path / "res"
+    w = open_writer(out, npz_large_bytes=0, npz_min_interval_s=1e9)
+    for e in make_estimates(3):
+        w.write(e)
+    # no close(): a crashed run; its result.json is then edited to "weighted": false
+    (out / "particles.npz").unlink()
+    path = out / "result.json"
+    doc = json.loads(path.read_text())
+    doc["weighted"] = False
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as info:
+        read_result(out)
+    err = info.value
+    assert Path(err.file).name == "result.json" and err.column == "weighted"
+    assert "particles.journal holds per-particle weights" in str(err)
     w.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -121,3 +122,39 @@ def test_validate_exits_2_on_bad_input(tmp_path: Path, capsys: pytest.CaptureFix
     assert "Traceback" not in err and "nested" in err and "t_s" in err
     assert main(["validate", str(tmp_path / ("x" * 300))]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_an_output_directory_inside_an_input_is_refused(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (run / "masks").mkdir(parents=True)
+    (run / "masks" / "result.json").write_text("a mask's namesake")
+    link = tmp_path / "link"
+    link.symlink_to(run / "masks")
+    for out in (run / "masks", run / "masks" / "new" / "deeper", run / "sub", link, link / "x"):
+        for overwrite in (False, True):
+            with pytest.raises(InputError, match="--out is inside the input") as info:
+                prepare_output_dir(out, overwrite, "result", inputs=[run])
+            assert info.value.file == str(out)
+    assert (run / "masks" / "result.json").read_text() == "a mask's namesake"
+    assert sorted(p.name for p in run.iterdir()) == ["masks"]  # nothing created
+    # beside the input, or an input inside the output (a batch of runs under the output's parent), is fine
+    assert prepare_output_dir(tmp_path / "runx", False, "result", inputs=[run]) == tmp_path / "runx"
+    assert prepare_output_dir(tmp_path / "b", False, "batch output", inputs=[run]) == tmp_path / "b"
+
+
+@pytest.mark.parametrize(("command", "sub"), [
+    (["track", "--method", "map", "--overwrite"], "masks"),  # was: result files written among the masks
+    (["track", "--method", "map"], "masks/new"),
+    (["track", "--method", "map"], "results"),
+    (["batch", "--method", "map", "--workers", "1"], "results"),
+])
+def test_cli_refuses_an_out_inside_the_input_recording(command: list[str], sub: str, run12: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(run12, run)
+    before = sorted(str(p.relative_to(run)) for p in run.rglob("*"))
+    capsys.readouterr()
+    assert main([command[0], str(run), *command[1:], "--out", str(run / sub)]) == 2
+    line = _one_error_line(capsys)
+    assert "--out is inside the input" in line and str(run / sub) in line
+    assert sorted(str(p.relative_to(run)) for p in run.rglob("*")) == before

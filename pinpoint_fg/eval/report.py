@@ -835,7 +835,8 @@ def evaluate_results(
     refused with ``spread_scale`` (no double scaling); without it, its recorded factors fill those columns
     (and the raw coverage is that of ``q95 / kappa``).
     """
-    results = expand_result_dirs(path_list("results", results))
+    given_paths = path_list("results", results)
+    results = expand_result_dirs(given_paths)
     if not results:
         raise InputError("no results to evaluate")
     out = path_argument("out", out)  # None was pathlib's TypeError, naming no argument
@@ -899,7 +900,9 @@ def evaluate_results(
         frames_of[rec.root].update(int(f) for f in res.frame)
     left_out = {root: left_out_frames(rec, frames_of[root]) for root, rec in recs.items()}
     # created only now that every input has been read: a refused one leaves no empty ``out`` behind
-    out = prepare_output_dir(out, True, "evaluation")
+    # not into (or inside) a result, batch directory, recording or reference it reads, as the command line checks
+    out = prepare_output_dir(out, True, "evaluation", inputs=[*given_paths, *results, *recs, *(
+        p for p in (recording, reference) if p is not None)])
 
     # ΔNLL labels and floor: once per (recording, likelihood), on the union of the frames needed
     needed: dict[tuple, set[int]] = {}

@@ -5,6 +5,8 @@ Rules (every subcommand that writes goes through :func:`prepare_output_dir` or
 
 * ``--out`` naming an existing **file** (for a directory output), or a path **under** a file,
   is refused;
+* an output directory that is one of the command's input directories, or lies inside one, is refused,
+  with or without ``overwrite``;
 * an existing **non-empty** directory is refused unless ``overwrite`` is true; then the command
   replaces the files it writes and leaves every other file in the directory alone (nothing is
   deleted wholesale: ``--out ~ --overwrite`` must not be able to empty a home directory);
@@ -93,6 +95,10 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     if same is not None:
         raise InputError(f"--out is also an input of this command; write the {what} to a directory of its own",
                          file=_short(path))
+    owner = _enclosing_input(path, inputs)
+    if owner is not None:
+        raise InputError(f"--out is inside the input {_short(owner)}; the {what} would be mixed into that input's "
+                         "files (and could replace one of them): choose an --out outside it", file=_short(path))
     p = _usable(path, what)
     try:
         if p.exists() or p.is_symlink():
@@ -127,8 +133,9 @@ def prepare_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
 
     Raises :class:`InputError` (module docstring) for a file in the way, a path under a file, a
     non-empty directory without ``overwrite``, or a path the OS refuses; and, with or without
-    ``overwrite``, for a path that is one of the command's input directories ``inputs`` (a result written
-    into its own recording, or an evaluation into a result it reads, would mix two directories' files).
+    ``overwrite``, for a path that is one of the command's input directories ``inputs`` or lies inside one (a
+    result written into its own recording or its ``masks``, or an evaluation into a result it reads, would mix
+    two directories' files).
     """
     p = check_output_dir(path, overwrite, what, inputs)
     try:
@@ -145,6 +152,23 @@ def _same_dir(path: str | os.PathLike, inputs: Sequence[str | os.PathLike]) -> s
             return None
         for root in inputs:
             if os.path.isdir(root) and os.path.samefile(path, root):
+                return root
+    except (OSError, ValueError, TypeError):
+        return None  # unusable paths are refused, with their own message, by the checks that follow
+    return None
+
+
+def _enclosing_input(path: str | os.PathLike, inputs: Sequence[str | os.PathLike]) -> str | os.PathLike | None:
+    """The input directory of ``inputs`` that ``path`` lies inside (at any depth, links followed), or None.
+
+    Decision: an output directory inside an input (``track RUN --out RUN/masks``, ``batch RUN --out RUN/results``)
+    is refused like the input itself, with or without ``--overwrite``: a result file there replaced a namesake of
+    the input (a mask named ``result.json``) or left files the input's readers then met as part of it.
+    """
+    try:
+        real = Path(os.path.realpath(path))  # not Path.resolve: a symlink loop was its RuntimeError traceback
+        for root in inputs:
+            if os.path.isdir(root) and Path(os.path.realpath(root)) in real.parents:
                 return root
     except (OSError, ValueError, TypeError):
         return None  # unusable paths are refused, with their own message, by the checks that follow

@@ -225,7 +225,10 @@ def _cmd_calibrate_spread(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.spread_scale import format_scale
 
     prepare_output_file(args.out, args.overwrite, "spread scale", inputs=args.results)
-    scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg))
+    notes: list[str] = []
+    scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg), notes=notes)
+    for note in notes:
+        print(note, file=sys.stderr)
     scale.save(args.out)
     print(format_scale(scale))
     print(f"wrote {args.out}")

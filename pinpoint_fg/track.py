@@ -24,7 +24,7 @@ from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.io.jsonfile import INT64_MAX
-from pinpoint_fg.io.outdir import prepare_output_dir
+from pinpoint_fg.io.outdir import missing_dirs, prepare_output_dir, remove_empty_dirs
 from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording
@@ -161,7 +161,8 @@ def track_recording(
 
     ``progress`` None shows a bar only on a terminal. ``max_frames`` stops after that many frames.
     ``out`` must be new or empty unless ``overwrite`` (:func:`pinpoint_fg.io.outdir.prepare_output_dir`);
-    it is checked before the recording is read, so a refused ``out`` costs nothing.
+    it is checked before the recording is read, so a refused ``out`` costs nothing. An ``out`` this call created is
+    removed again if the call fails before writing anything into it.
     ``verdict_workers`` processes observe frames ahead of the tracker and summarise each frame (GMM verdict,
     modes) behind it (:class:`~pinpoint_fg.offload.Offload`; 0: all inline, same files; ``pinpoint-fg track``
     uses 1; the worker is spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
@@ -204,18 +205,26 @@ def track_recording(
     if robust is not None and not isinstance(robust, Mapping):
         raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
                          f"SPEC), got {type(robust).__name__}")  # a str was "dictionary update sequence element #0"
+    # Decision: ``out`` (and the parents) created here is removed again when the run fails while it is still
+    # empty (a recording refused on reading, a bad spread scale): an empty directory left behind was met later as
+    # a result that is not one (in a batch output, by ``evaluate``). One holding files (a result cut short) stays.
+    created = missing_dirs(out)
     out = prepare_output_dir(out, overwrite, "result", inputs=(run,))
-    scale = None
-    if spread_scale is not None:
-        scale = settings_entry(SpreadScale.load(spread_scale), method)  # refused before any work
-    offload = Offload(verdict_workers, max_points)  # first: the observer starts up while we read
-    failed = True
     try:
-        out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
-                     robust, blas_threads, offload, scale, conic_correlation_px, conic_distance)
-        failed = False
-    finally:
-        offload.close(failed)
+        scale = None
+        if spread_scale is not None:
+            scale = settings_entry(SpreadScale.load(spread_scale), method)  # refused before any work
+        offload = Offload(verdict_workers, max_points)  # first: the observer starts up while we read
+        failed = True
+        try:
+            out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
+                         robust, blas_threads, offload, scale, conic_correlation_px, conic_distance)
+            failed = False
+        finally:
+            offload.close(failed)
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
     return out
 
 

@@ -310,3 +310,21 @@ def test_track_with_a_spread_scale_scales_every_mode_of_a_bank(data, tmp_path: P
     b = read_result(track_recording(rec.root, out=tmp_path / "scaled", spread_scale=scale, **kw))
     assert np.any(np.bincount(read_modes(a.root).frame) >= 2)  # a frame with several modes is among them
     _assert_modes_scaled(a, b, 2.25, 2.9)
+
+
+def test_cli_calibrate_spread_names_the_sub_directories_of_a_batch_it_skips(data, tmp_path: Path,  # noqa: ANN001
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    _, results, _ = data
+    batch = tmp_path / "batch"
+    batch.mkdir()
+    shutil.copytree(results["svn"], batch / "svn")
+    (batch / "failed").mkdir()  # the empty directory a failed batch run left: was skipped without a word
+    capsys.readouterr()
+    assert main(["calibrate-spread", str(batch), "--out", str(tmp_path / "s.json")]) == 0
+    err = capsys.readouterr().err
+    assert f"note: skipped {batch / 'failed'}: empty, not a result" in err and len(err.splitlines()) == 1
+    notes: list[str] = []
+    scale = fit_spread_scale([batch], notes=notes)
+    assert scale.results == (str((batch / "svn").resolve()),) and notes == [err.strip()]

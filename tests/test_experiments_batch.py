@@ -128,3 +128,28 @@ def test_cli_batch_on_a_local_cluster_then_evaluate(runs: list[Path], tmp_path: 
     with open(report / "summary.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["method"] for r in rows] == ["map"] and rows[0]["frames"] == str(FRAMES)
+
+
+def test_a_run_failing_before_it_writes_leaves_no_directory_and_evaluate_names_a_skipped_one(
+        runs: list[Path], scheduler: str, tmp_path: Path) -> None:
+    from pinpoint_fg.eval.report import evaluate_results
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "recording.json").write_text("{}")
+    (bad / "frames.csv").write_text("frame,t_s\n0,0.0\n")
+    out = tmp_path / "out"
+    outcome = run_batch([bad, runs[0]], "map", out, scheduler=scheduler)
+    assert list(outcome.failures) == [bad.absolute()]
+    # was: an empty out/bad, which evaluate then skipped without a word
+    assert sorted(p.name for p in out.iterdir()) == ["run"]
+    (out / "bad").mkdir()  # what an older batch left, or anything a user put beside the results
+    (out / "notes").mkdir()
+    (out / "notes" / "todo.txt").write_text("re-run bad")
+    (out / ".cache").mkdir()  # hidden: not named
+    report = evaluate_results([out], out=tmp_path / "ev", ambiguity=False, figures=False)
+    assert [ev.result.root for ev in report.evaluations] == [out / "run"]
+    notes = [ln for ln in report.text.splitlines() if ln.startswith("note: skipped")]
+    assert notes == [f"note: skipped {out / 'bad'}: empty, not a result (what a batch run that failed before "
+                     f"writing anything left), beside the results in {out}",
+                     f"note: skipped {out / 'notes'}: not a result (no result.json), beside the results in {out}"]

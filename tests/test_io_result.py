@@ -411,3 +411,23 @@ def test_result_json_weighted_must_agree_with_the_journal(tmp_path: Path) -> Non
     assert Path(err.file).name == "result.json" and err.column == "weighted"
     assert "particles.journal holds per-particle weights" in str(err)
     w.close()
+
+
+def test_expand_result_dirs_reports_the_sub_directories_it_skips(result_dir: Path, tmp_path: Path) -> None:
+    from pinpoint_fg.io.result.reader import expand_result_dirs, skipped_dir_note
+
+    batch = tmp_path / "batch"
+    batch.mkdir()
+    result_dir.rename(batch / "a")
+    for name in ("b-failed", ".hidden", "c\nnewline"):
+        (batch / name).mkdir()
+    (batch / "summary.txt").write_text("a file, not a sub-directory")
+    assert expand_result_dirs([batch]) == [batch / "a"]  # the signature other callers use is unchanged
+    skipped: list[Path] = []
+    assert expand_result_dirs([batch, batch / "a"], skipped) == [batch / "a"]
+    assert skipped == [batch / "b-failed", batch / "c\nnewline"]
+    note = skipped_dir_note(skipped[1])
+    assert "\n" not in note and note.startswith("note: skipped ") and "empty, not a result" in note
+    # a directory without any result is passed through for read_result to refuse, not "skipped"
+    skipped.clear()
+    assert expand_result_dirs([batch / "b-failed"], skipped) == [batch / "b-failed"] and skipped == []

@@ -140,3 +140,16 @@ def test_fixed_lag_smoothed_poses_cover_every_frame(run: Path, tmp_path: Path, m
     assert np.all(np.isfinite(T))
     # the newest frame's smoothed pose is its filtered estimate (nothing newer was seen), to the file's precision
     np.testing.assert_allclose(T[-1], res.cam_T_needle[-1], atol=1e-9)
+
+
+def test_a_run_refused_on_reading_leaves_no_output_directory(tmp_path: Path) -> None:
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "recording.json").write_text("{}")
+    (bad / "frames.csv").write_text("frame,t_s\n0,0.0\n")
+    assert main(["track", str(bad), "--method", "map", "--out", str(tmp_path / "new" / "res")]) == 2
+    assert not (tmp_path / "new").exists()  # was: an empty new/res, met later as a result that is not one
+    kept = tmp_path / "kept"
+    kept.mkdir()  # the user's own empty directory stays
+    assert main(["track", str(bad), "--method", "map", "--out", str(kept)]) == 2
+    assert kept.is_dir()

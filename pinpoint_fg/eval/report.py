@@ -75,7 +75,13 @@ from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import Recording, json_shown
-from pinpoint_fg.io.result.reader import check_tracked_on, expand_result_dirs, read_result, recording_of
+from pinpoint_fg.io.result.reader import (
+    check_tracked_on,
+    expand_result_dirs,
+    read_result,
+    recording_of,
+    skipped_dir_note,
+)
 from pinpoint_fg.io.result.schema import MODES_CSV, Result
 from pinpoint_fg.io.spread_scale import SpreadScale, recorded_scale
 from pinpoint_fg.likelihood import CONIC_DISTANCES, MeasurementModel, Switches
@@ -821,8 +827,10 @@ def evaluate_results(
     """Evaluate result directories (module docstring); returns everything computed.
 
     A directory of results (``pinpoint-fg batch`` output) stands for its result sub-directories
-    (:func:`~pinpoint_fg.io.result.expand_result_dirs`). ``ambiguity=False`` skips the ΔNLL labels
-    (sensitivity / false-bimodal rates become NaN) but still computes the accuracy floor.
+    (:func:`~pinpoint_fg.io.result.expand_result_dirs`); each other sub-directory of it gets a ``note:`` line in the
+    text (an empty one is what a failed batch run left: the evaluation is then not of the whole batch).
+    ``ambiguity=False`` skips the ΔNLL labels (sensitivity / false-bimodal rates become NaN) but still computes
+    the accuracy floor.
     ``progress(message)`` is called at each stage when given.
     ``reference``: a multi-hypothesis result (with modes.csv) whose per-frame modes judge the
     bimodal verdicts of the results of the same recording (a reference of none of their recordings is an
@@ -836,7 +844,8 @@ def evaluate_results(
     (and the raw coverage is that of ``q95 / kappa``).
     """
     given_paths = path_list("results", results)
-    results = expand_result_dirs(given_paths)
+    skipped: list[Path] = []  # sub-directories of a batch directory that are not results: named in a note
+    results = expand_result_dirs(given_paths, skipped)
     if not results:
         raise InputError("no results to evaluate")
     out = path_argument("out", out)  # None was pathlib's TypeError, naming no argument
@@ -963,7 +972,8 @@ def evaluate_results(
         files += _figures(evals, out)
     text = (comparison_text(evals) + text_scaled + partial_text(evals, [(res, rec) for res, rec, _, _ in loaded])
             + no_truth_text(evals))
-    notes = [left_out_note(recs[root], gone, " of the scores") for root, gone in left_out.items() if gone]
+    notes = [skipped_dir_note(d) for d in skipped]
+    notes += [left_out_note(recs[root], gone, " of the scores") for root, gone in left_out.items() if gone]
     if notes:
         text += "\n\n" + "\n".join(notes)
     return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)

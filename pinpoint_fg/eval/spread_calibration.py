@@ -60,7 +60,7 @@ import numpy as np
 from pinpoint_fg.errors import InputError, path_list
 from pinpoint_fg.eval.metrics import pose_errors
 from pinpoint_fg.io.recording.schema import Recording
-from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of
+from pinpoint_fg.io.result.reader import expand_result_dirs, read_result, recording_of, skipped_dir_note
 from pinpoint_fg.io.result.schema import Result
 from pinpoint_fg.io.spread_scale import KAPPA_RANGE, LEVEL, MODE_GATE_RAD, MethodScale, SpreadScale, recorded_scale
 
@@ -137,7 +137,7 @@ def frame_errors(res: Result, recording: Recording) -> FrameErrors:
 
 
 def fit_spread_scale(results: list[str | Path], level: float = LEVEL,
-                     mode_gate_rad: float = MODE_GATE_RAD) -> SpreadScale:
+                     mode_gate_rad: float = MODE_GATE_RAD, notes: list[str] | None = None) -> SpreadScale:
     """Fit one :class:`MethodScale` per method over ``results`` (module docstring); frames of all runs pooled.
 
     ``results``: result directories or directories of results (``batch`` output), each naming its
@@ -145,11 +145,16 @@ def fit_spread_scale(results: list[str | Path], level: float = LEVEL,
     has truth, both q95 are finite and the MAP's rotation error is at most ``mode_gate_rad`` (``pi``: no
     gate; see the module docstring for the gate and for q95 = 0). A method whose factors cannot be fitted
     is listed in ``unfitted`` with the reason; :class:`InputError` when no method can be.
+    ``notes``, when given, receives a ``note:`` line per sub-directory of a directory of results that is not a
+    result and was skipped (as ``evaluate`` prints them: the fit is then not over the whole batch).
     """
     if not 0.0 < mode_gate_rad <= math.pi:
         raise InputError(f"the mode gate must lie in (0, 180] degrees, got {math.degrees(mode_gate_rad):g}",
                          column="mode_gate")
-    dirs = expand_result_dirs(path_list("results", results))
+    skipped: list[Path] = []
+    dirs = expand_result_dirs(path_list("results", results), skipped)
+    if notes is not None:
+        notes.extend(skipped_dir_note(d) for d in skipped)
     if not dirs:
         raise InputError("no results to fit the spread scale on")
     cache: dict[Path, Recording] = {}

@@ -253,14 +253,14 @@ def staged_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
         stage = out.parent / f".{out.name[:100]}.partial-{os.getpid()}-{secrets.token_hex(4)}"
         stage.mkdir()
     except OSError as exc:
-        _remove_empty(created)
+        remove_empty_dirs(created)
         raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(out)) from None
     try:
         yield stage
         _publish(stage, out)
     except BaseException as exc:
         shutil.rmtree(stage, ignore_errors=True)
-        _remove_empty(created)
+        remove_empty_dirs(created)
         if isinstance(exc, InputError | OSError):
             _rename_staged(exc, stage, out)
         raise
@@ -280,8 +280,25 @@ def _publish(stage: Path, out: Path) -> None:
     shutil.rmtree(stage, ignore_errors=True)
 
 
-def _remove_empty(dirs: Sequence[Path]) -> None:
-    """Remove ``dirs`` (parents a command created, deepest first) that are still empty."""
+def missing_dirs(path: str | os.PathLike) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first: what creating ``path`` creates, for
+    :func:`remove_empty_dirs` when the command then fails. Empty for a path that cannot be inspected (refused, with
+    its own message, by :func:`prepare_output_dir`)."""
+    try:
+        p = Path(os.fspath(path)).absolute()
+        missing = []
+        for d in (p, *p.parents):
+            if d.exists() or d.is_symlink():
+                break
+            missing.append(d)
+        return missing
+    except (OSError, ValueError, TypeError):
+        return []
+
+
+def remove_empty_dirs(dirs: Sequence[Path]) -> None:
+    """Remove ``dirs`` (directories a command created, deepest first) that are still empty; stop at the first that
+    is not (it holds files the user should see, e.g. a result cut short)."""
     for d in dirs:
         try:
             d.rmdir()

@@ -188,19 +188,27 @@ def _parse_frames_and_poses(
     return frames, t_s, poses
 
 
-def expand_result_dirs(paths: Iterable[str | Path]) -> list[Path]:
+def expand_result_dirs(paths: Iterable[str | Path], skipped: list[Path] | None = None) -> list[Path]:
     """Result directories named by ``paths``: a result directory itself, or a directory of results.
 
     A path holding ``result.json`` is a result. A directory without one whose immediate
     sub-directories hold ``result.json`` (the output of ``pinpoint-fg batch``) stands for those
     sub-directories, in name order. Anything else is passed through unchanged, so
     :func:`read_result` reports it. Order is kept and duplicates are dropped.
+
+    ``skipped``, when given, receives the other sub-directories of such a directory of results (in name order;
+    hidden ones, starting with ".", are not listed). Decision: they stay skipped, as a batch directory may hold
+    anything beside its results, but the caller says so (:func:`skipped_dir_note`): silently, the empty directory a
+    failed batch run left looked like a batch evaluated in full.
     """
     out: list[Path] = []
     for p in map(Path, path_list("paths", paths)):
         if p.is_dir() and not (p / RESULT_JSON).exists():
-            subs = sorted(d for d in p.iterdir() if d.is_dir() and (d / RESULT_JSON).is_file())
+            dirs = sorted(d for d in p.iterdir() if d.is_dir())
+            subs = [d for d in dirs if (d / RESULT_JSON).is_file()]
             out.extend(subs or [p])
+            if subs and skipped is not None:
+                skipped.extend(d for d in dirs if d not in subs and not d.name.startswith("."))
         else:
             out.append(p)
     seen: set[str] = set()
@@ -211,6 +219,20 @@ def expand_result_dirs(paths: Iterable[str | Path]) -> list[Path]:
             seen.add(key)
             unique.append(p)
     return unique
+
+
+def skipped_dir_note(path: Path) -> str:
+    """The ``note:`` line for a sub-directory of a directory of results that :func:`expand_result_dirs` skipped."""
+    try:
+        empty = not any(path.iterdir())
+    except OSError:
+        empty = False
+    why = ("empty, not a result (what a batch run that failed before writing anything left)" if empty
+           else f"not a result (no {RESULT_JSON})")
+    text, parent = str(path), str(path.parent)
+    if any(ord(c) < 32 for c in text):  # a name with a newline must not break the one line
+        text, parent = (t.encode("unicode_escape").decode("ascii") for t in (text, parent))
+    return f"note: skipped {text}: {why}, beside the results in {parent}"
 
 
 def read_result(out_dir: str | Path) -> Result:

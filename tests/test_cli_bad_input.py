@@ -420,7 +420,7 @@ def test_reference_of_another_recording_is_refused_before_any_work(map_result: P
     other_run = tmp_path / "other"
     assert main(["simulate", "--scenario", "rotation", "--frames", "4", "--seed", "2", "--out", str(other_run)]) == 0
     other = tmp_path / "other-result"
-    assert main(["track", str(other_run), "--method", "map", "--out", str(other)]) == 0
+    assert main(["track", str(other_run), "--method", "mht", "--out", str(other)]) == 0  # a multi-hypothesis one
     capsys.readouterr()
     ev = tmp_path / "ev"
     assert main(["evaluate", str(map_result), "--reference", str(other), "--out", str(ev)]) == 2
@@ -430,7 +430,7 @@ def test_reference_of_another_recording_is_refused_before_any_work(map_result: P
     # a reference of one of the evaluated recordings is still taken
     both = [str(map_result), str(other)]
     assert main(["evaluate", *both, "--reference", str(other), "--out", str(tmp_path / "ok")]) == 0
-    assert "(0 / 4 frames)" in capsys.readouterr().out
+    assert "(0 / 4 frames)" in capsys.readouterr().out  # the other recording's result, judged on its 4 frames
 
 
 def _interrupt_or_mark(job) -> tuple[str, float]:

@@ -885,10 +885,6 @@ def evaluate_results(
         if not (ref_res.root / MODES_CSV).exists():
             raise InputError("the reference has no modes.csv (give a multi-hypothesis result)",
                              file=ref_res.root / MODES_CSV)
-        if ref_res.method == "map":  # one mode per frame: every rate against it would read "single-mode"
-            raise InputError("the reference is a single-mode MAP result, which calls every frame single-mode; give a "
-                             "multi-hypothesis result (mht; or svn, svgd, pf)", file=ref_res.root / "result.json",
-                             column="method")
         ref_name = str(ref_res.info["recording_name"])
         names_evaluated = sorted({rec.info.name for _, rec, _, _ in loaded})
         if ref_name not in names_evaluated:  # it would judge nothing: every rate against it silently empty
@@ -896,6 +892,10 @@ def evaluate_results(
                              f"{', '.join(map(repr, names_evaluated))}", file=ref_res.root / "result.json",
                              column="recording_name")
         check_tracked_on(ref_res, next(rec for _, rec, _, _ in loaded if rec.info.name == ref_name))
+        if ref_res.method == "map":  # one mode per frame: every rate against it would read "single-mode"
+            raise InputError("the reference is a single-mode MAP result, which calls every frame single-mode; give a "
+                             "multi-hypothesis result (mht; or svn, svgd, pf)", file=ref_res.root / "result.json",
+                             column="method")
         rm = modes_of_result(ref_res)
         refs[ref_name] = (str(ref_res.root), ref_res.frame, rm.weights, ref_res.method)
 

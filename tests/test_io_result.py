@@ -375,6 +375,18 @@ def test_particles_journal_frame_weights_must_have_a_positive_finite_sum(tmp_pat
     w.close()
 
 
+def _refused_with_weighted(out: Path, flag: bool) -> InputError:
+    """Set result.json's "weighted" to ``flag``; the reader's refusal, which must name result.json's ``weighted``."""
+    path = out / "result.json"
+    doc = json.loads(path.read_text())
+    doc["weighted"] = flag
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as info:
+        read_result(out)
+    assert Path(info.value.file).name == "result.json" and info.value.column == "weighted"
+    return info.value
+
+
 @pytest.mark.parametrize("flag", [False, True])
 def test_result_json_weighted_must_agree_with_the_particles(tmp_path: Path, flag: bool) -> None:
     # "weighted": false over a particle filter's weights was evaluated with the weights ignored (bimodal rate
@@ -383,15 +395,8 @@ def test_result_json_weighted_must_agree_with_the_particles(tmp_path: Path, flag
     with open_writer(out, weighted=not flag) as w:
         for e in make_estimates(3, weighted=not flag):
             w.write(e)
-    path = out / "result.json"
-    doc = json.loads(path.read_text())
-    doc["weighted"] = flag
-    path.write_text(json.dumps(doc))
-    with pytest.raises(InputError) as info:
-        read_result(out)
-    err = info.value
-    assert Path(err.file).name == "result.json" and err.column == "weighted" and err.row is None
-    assert f"is {str(flag).lower()} but particles.npz holds" in str(err)
+    err = _refused_with_weighted(out, flag)
+    assert err.row is None and f"is {str(flag).lower()} but particles.npz holds" in str(err)
 
 
 def test_result_json_weighted_must_agree_with_the_journal(tmp_path: Path) -> None:
@@ -401,14 +406,7 @@ def test_result_json_weighted_must_agree_with_the_journal(tmp_path: Path) -> Non
         w.write(e)
     # no close(): a crashed run; its result.json is then edited to "weighted": false
     (out / "particles.npz").unlink()
-    path = out / "result.json"
-    doc = json.loads(path.read_text())
-    doc["weighted"] = False
-    path.write_text(json.dumps(doc))
-    with pytest.raises(InputError) as info:
-        read_result(out)
-    err = info.value
-    assert Path(err.file).name == "result.json" and err.column == "weighted"
+    err = _refused_with_weighted(out, False)
     assert "particles.journal holds per-particle weights" in str(err)
     w.close()
 

@@ -40,7 +40,7 @@ from pinpoint_fg.errors import InputError
 _SHOWN_ENTRIES = 3
 
 
-def _short(path: str | os.PathLike) -> str:
+def path_text(path: str | os.PathLike) -> str:
     """The path as text with control characters escaped (a NUL must not cut the message)."""
     text = os.fspath(path)
     text = text if isinstance(text, str) else text.decode("utf-8", "backslashreplace")
@@ -57,7 +57,7 @@ def _usable(path: str | os.PathLike, what: str) -> Path:
     if text == "":
         raise InputError(f"--out is empty; name a path for the {what}")
     if "\x00" in text:
-        raise InputError("--out contains a NUL byte, which no path can hold", file=_short(text))
+        raise InputError("--out contains a NUL byte, which no path can hold", file=path_text(text))
     return Path(text)
 
 
@@ -94,11 +94,11 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     same = _same_dir(path, inputs)
     if same is not None:
         raise InputError(f"--out is also an input of this command; write the {what} to a directory of its own",
-                         file=_short(path))
+                         file=path_text(path))
     owner = _enclosing_input(path, inputs)
     if owner is not None:
-        raise InputError(f"--out is inside the input {_short(owner)}; the {what} would be mixed into that input's "
-                         "files (and could replace one of them): choose an --out outside it", file=_short(path))
+        raise InputError(f"--out is inside the input {path_text(owner)}; the {what} would be mixed into that input's "
+                         "files (and could replace one of them): choose an --out outside it", file=path_text(path))
     p = _usable(path, what)
     try:
         if p.exists() or p.is_symlink():
@@ -123,7 +123,7 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     except InputError:
         raise
     except OSError as exc:
-        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(p)) from None
+        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=path_text(p)) from None
     return p
 
 
@@ -141,7 +141,7 @@ def prepare_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(p)) from None
+        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=path_text(p)) from None
     return p
 
 
@@ -231,7 +231,7 @@ def prepare_output_file(path: str | os.PathLike, overwrite: bool, what: str,
         raise
     except (OSError, ValueError) as exc:
         why = _os_problem(exc) if isinstance(exc, OSError) else str(exc)
-        raise InputError(f"--out cannot be used for the {what}: {why}", file=_short(p)) from None
+        raise InputError(f"--out cannot be used for the {what}: {why}", file=path_text(p)) from None
     return p
 
 
@@ -254,7 +254,7 @@ def staged_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
         stage.mkdir()
     except OSError as exc:
         remove_empty_dirs(created)
-        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=_short(out)) from None
+        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=path_text(out)) from None
     try:
         yield stage
         _publish(stage, out)

@@ -18,6 +18,7 @@ import numpy as np
 from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError, path_argument, path_list
 from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.outdir import path_text
 from pinpoint_fg.io.recording.fingerprint import FINGERPRINT_KEY, recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, Recording, json_shown, shown
@@ -229,10 +230,8 @@ def skipped_dir_note(path: Path) -> str:
         empty = False
     why = ("empty, not a result (what a batch run that failed before writing anything left)" if empty
            else f"not a result (no {RESULT_JSON})")
-    text, parent = str(path), str(path.parent)
-    if any(ord(c) < 32 for c in text):  # a name with a newline must not break the one line
-        text, parent = (t.encode("unicode_escape").decode("ascii") for t in (text, parent))
-    return f"note: skipped {text}: {why}, beside the results in {parent}"
+    # a name with a newline must not break the one line
+    return f"note: skipped {path_text(path)}: {why}, beside the results in {path_text(path.parent)}"
 
 
 def read_result(out_dir: str | Path) -> Result:

@@ -25,6 +25,7 @@ import numpy as np
 
 from factors.lie import homogeneous, local, se3_exp
 from factors.residuals import needle_image_conic
+from pinpoint_fg.conic_fit import fit_conic
 from pinpoint_fg.likelihood import FrameLikelihood
 from pinpoint_fg.stein import floor_hessians
 
@@ -48,26 +49,6 @@ class InitConfig:
     """Per-axis Gaussian spread of the particles around their mode, [omega x3 (rad), v x3 (m)]."""
     default_depth_m: float = 0.05
     """Depth of the fallback fronto-parallel needle when there is no mask and no kinematics."""
-
-
-def fit_conic(points_px: np.ndarray) -> np.ndarray | None:
-    """Least-squares conic ``x^T C x = 0`` through pixels ``(M, 2)`` (Hartley-normalised); None if M < 5.
-
-    Returns a symmetric 3x3 ``C`` in pixel coordinates, scaled to unit Frobenius norm.
-    """
-    p = np.asarray(points_px, dtype=float)
-    if p.shape[0] < 5:
-        return None
-    mu = p.mean(axis=0)
-    s = np.sqrt(2.0) / max(np.mean(np.linalg.norm(p - mu, axis=1)), 1e-9)
-    N = np.array([[s, 0, -s * mu[0]], [0, s, -s * mu[1]], [0, 0, 1.0]])
-    x, y = s * (p[:, 0] - mu[0]), s * (p[:, 1] - mu[1])
-    D = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
-    _, _, Vt = np.linalg.svd(D, full_matrices=False)
-    a, b, c, d, e, f = Vt[-1]
-    Cn = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
-    C = N.T @ Cn @ N
-    return C / np.linalg.norm(C)
 
 
 def circle_poses_from_conic(C: np.ndarray, K: np.ndarray, radius_m: float) -> list[tuple[np.ndarray, np.ndarray]]:

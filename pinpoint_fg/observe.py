@@ -1,7 +1,7 @@
 """Segmentation masks -> needle backbone pixels, and recorded frames -> tracker observations.
 
-:func:`backbone_from_mask` turns a binary needle mask (distorted camera image) into at most
-``max_points`` undistorted pixels on the needle's centre-line:
+:func:`mask_backbone` (and :func:`backbone_from_mask`, its pixels alone) turns a binary needle mask (distorted
+camera image) into at most ``max_points`` undistorted pixels on the needle's centre-line:
 
 1. **Binarise**: nonzero = needle.
 2. **Drop blobs that cannot be needle**: 8-connected components are kept when their area
@@ -28,6 +28,10 @@
    width, or when the move exceeds ``0.25 ·`` wire width + 1 px, e.g. at a junction).
 6. **Undistort** with :meth:`PinholeCamera.undistort_px`.
 
+:func:`observe_frame` then checks that the pixels can be one needle's centre-line at all: they must lie on
+their own best-fitting conic to within the wire's width (:func:`centre_line_misfit`); a mask of noise or
+texture is ignored, with the reason in the observation, instead of being fitted.
+
 The wire width ``w`` used in step 5 is estimated as blob area / skeleton length. Skeleton
 pixels within ``w`` of the image border are dropped before step 4: where the image frame
 cuts the wire obliquely, the thinned line bends towards the middle of the cut.
@@ -40,6 +44,7 @@ wire width) the mask merges the near and far branches and its centre-line lies b
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -47,6 +52,7 @@ import cv2
 import numpy as np
 
 from factors.geometry import PinholeCamera
+from pinpoint_fg.conic_fit import conic_misfit_px
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.recording.reader import no_image_evidence_note, time_order_note
 from pinpoint_fg.observation import Observation
@@ -155,7 +161,17 @@ def _refine_across(
     return np.stack([r + shift * n_row, c + shift * n_col], axis=1)
 
 
-def backbone_from_mask(
+@dataclass(frozen=True)
+class MaskBackbone:
+    """What :func:`mask_backbone` reads from a mask."""
+
+    points_px: np.ndarray
+    """Undistorted centre-line pixels ``(M, 2)`` as (u, v); ``(0, 2)`` when the mask holds no wire."""
+    width_px: float
+    """The wire's mean width in the mask, pixels: the kept blobs' area over their skeleton length (0 if none)."""
+
+
+def mask_backbone(
     mask: np.ndarray,
     camera: PinholeCamera,
     max_points: int = 200,
@@ -164,8 +180,9 @@ def backbone_from_mask(
     min_elongation: float = 2.0,
     refine: bool = True,
     file: str | Path | None = None,
-) -> np.ndarray:
-    """Undistorted centre-line pixels ``(M, 2)`` as (u, v), ``M <= max_points``, of a needle mask.
+) -> MaskBackbone:
+    """Undistorted centre-line pixels ``(M, 2)`` as (u, v), ``M <= max_points``, of a needle mask, and the
+    wire's width (:class:`MaskBackbone`).
 
     ``mask`` is ``(camera.height, camera.width)``, nonzero = needle (distorted image), any
     dtype. The steps are in the module docstring: ``min_blob_px``, ``min_blob_fraction`` and
@@ -193,7 +210,7 @@ def backbone_from_mask(
         binary = (m != 0).astype(np.uint8)
     fg = cv2.findNonZero(binary)
     if fg is None:
-        return np.zeros((0, 2))
+        return MaskBackbone(np.zeros((0, 2)), 0.0)
     fg = fg.reshape(-1, 2)  # (N, 2) as (u, v)
     u_lo, v_lo = fg.min(axis=0)
     u_hi, v_hi = fg.max(axis=0)
@@ -207,7 +224,7 @@ def backbone_from_mask(
     keep[0] = False
     kept = fg[keep[fg_label]]
     if kept.shape[0] == 0:
-        return np.zeros((0, 2))
+        return MaskBackbone(np.zeros((0, 2)), 0.0)
     c0, r0 = kept.min(axis=0)
     c1, r1 = kept.max(axis=0) + 1
     crop = np.zeros((r1 - r0, c1 - c0), dtype=np.uint8)
@@ -215,7 +232,7 @@ def backbone_from_mask(
     skeleton = zhang_suen_thin(crop)
     rows, cols = np.nonzero(skeleton)
     if rows.size == 0:
-        return np.zeros((0, 2))
+        return MaskBackbone(np.zeros((0, 2)), 0.0)
     # compact blobs (skeleton length^2 / area < min_elongation) are specks, not wire; the largest stays
     sk_label = labels[rows + (r0 - v_lo), cols + (c0 - u_lo)]
     length = np.bincount(sk_label, minlength=areas.size).astype(float)
@@ -232,14 +249,68 @@ def backbone_from_mask(
     )
     rows, cols = rows[inner], cols[inner]
     if rows.size == 0:
-        return np.zeros((0, 2))
+        return MaskBackbone(np.zeros((0, 2)), 0.0)
     count = min(int(max_points), rows.size)
     idx = (np.arange(count) * rows.size) // count
     pts_rc = np.stack([rows[idx], cols[idx]], axis=1).astype(float)
     if refine:
         pts_rc = _refine_across(crop, pts_rc, width_px)
     pts_px = np.stack([pts_rc[:, 1] + c0, pts_rc[:, 0] + r0], axis=1)
-    return camera.undistort_px(pts_px)
+    return MaskBackbone(camera.undistort_px(pts_px), width_px)
+
+
+def backbone_from_mask(
+    mask: np.ndarray,
+    camera: PinholeCamera,
+    max_points: int = 200,
+    min_blob_px: int = 40,
+    min_blob_fraction: float = 0.1,
+    min_elongation: float = 2.0,
+    refine: bool = True,
+    file: str | Path | None = None,
+) -> np.ndarray:
+    """:func:`mask_backbone`'s centre-line pixels ``(M, 2)`` alone (the same arguments)."""
+    return mask_backbone(mask, camera, max_points, min_blob_px, min_blob_fraction, min_elongation, refine,
+                         file).points_px
+
+
+#: A mask's centre-line is no needle's when its median distance to its own best-fitting conic exceeds this many
+#: wire widths (:func:`centre_line_misfit`) ...
+MISFIT_WIDTHS = 1.0
+#: ... and this many pixels.
+MISFIT_MIN_PX = 3.0
+
+
+def centre_line_misfit(backbone: MaskBackbone) -> str | None:
+    """Why ``backbone``'s pixels cannot be a needle's centre-line, or None (also when it is empty).
+
+    A needle's centre-line is an arc of the circle's image conic (a line when seen edge-on), so its pixels lie
+    on their own least-squares conic to within the mask's noise: :func:`pinpoint_fg.conic_fit.conic_misfit_px`
+    (median Sampson distance). The gate is that median above :data:`MISFIT_WIDTHS` wire widths and
+    :data:`MISFIT_MIN_PX` pixels. On 6,349 simulated mask frames (every scenario, seeds 1-8, drive 9-14,
+    snapshots 9-20; ``scripts/mask_gate.py measure``) the median was at most 2.1 px and 0.26 widths;
+    masks of random noise (20 or 50 % of the pixels), stripes, or an arc beside a second wire scored 2.0-107
+    widths and 3.0-127 px. Such a frame's mask is ignored (the frame keeps its keypoints and kinematics):
+    fitted, 16 noise masks among normal-01's 49 (``scripts/mask_gate.py corrupt``) took SVN's mean error to
+    2.61 mm / 31.8 deg and MAP's to 3.12 mm / 39.5 deg; with 14 ignored, 0.55 / 7.5 and 0.59 / 7.6. Not caught:
+    noise sparse enough to leave a few specks (the other two, 1.5 and 2.3 px: a conic passes near five specks),
+    and a mask holding one straight line or one clean arc that is not the needle (an edge-on needle looks alike).
+    """
+    if backbone.points_px.shape[0] < 5:
+        return None
+    misfit = conic_misfit_px(backbone.points_px)
+    gate = max(MISFIT_WIDTHS * backbone.width_px, MISFIT_MIN_PX)
+    if misfit <= gate:
+        return None
+    return (f"its centre-line lies a median {misfit:.1f} px off its best-fitting conic, more than the wire's width "
+            f"({backbone.width_px:.1f} px) and {MISFIT_MIN_PX:g} px: not one needle (noise, texture or two objects?)")
+
+
+def ignored_masks_note(run: Path, ignored: list[tuple[int, str]]) -> str:
+    """One ``note:`` line for the frames ``(frame, Observation.mask_ignored)`` whose masks were ignored."""
+    frame, why = ignored[0]
+    return (f"note: {run}: the masks of {len(ignored)} frame(s) were ignored and those frames tracked from their "
+            f"keypoints and kinematics (first: frame {frame}, {why})")
 
 
 #: A keypoint cell more than this many pixels outside the image is not a detection (:func:`observe_frame`).
@@ -293,8 +364,9 @@ def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200)
     see, the distortion model means nothing there, and such cells (a keypoint in another image's
     pixel scale, a sentinel like -5000) on ten frames had turned both SVN's and MAP's pose by
     140 deg on those frames. :func:`outside_image_note` tells the user. The backbone comes from the frame's mask via
-    :func:`backbone_from_mask` (None when the frame has no mask or the mask holds no
-    needle); ``cam_T_grasper`` is passed through.
+    :func:`mask_backbone` (None when the frame has no mask or the mask holds no
+    needle); a mask whose centre-line fits no conic (:func:`centre_line_misfit`) is ignored, and the
+    observation says why in ``mask_ignored``. ``cam_T_grasper`` is passed through.
     """
     camera: PinholeCamera = recording.info.camera
     tip, tail = (camera.undistort_px(np.asarray(px, float)[None, :])[0] if detected_in_image(camera, px) else None
@@ -304,15 +376,19 @@ def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200)
             raise InputError(f"frame {rec.frame}: the {name} at ({raw[0]:g}, {raw[1]:g}) px cannot be undistorted "
                              "with recording.json's camera.distortion (NaN or inf)",
                              file=Path(recording.root) / "frames.csv", column=f"{name}_u")
-    backbone = None
+    backbone = ignored = None
     if rec.mask is not None:
         mask = recording.load_mask(rec)
-        pts = backbone_from_mask(mask, camera, max_points=max_points, file=Path(recording.root) / rec.mask)
+        mb = mask_backbone(mask, camera, max_points=max_points, file=Path(recording.root) / rec.mask)
+        pts = mb.points_px
         if not np.isfinite(pts).all():
             raise InputError(f"frame {rec.frame}: {int((~np.isfinite(pts).all(axis=1)).sum())} backbone pixel(s) "
                              "cannot be undistorted with recording.json's camera.distortion (NaN or inf)",
                              file=Path(recording.root) / rec.mask)
-        backbone = pts if pts.shape[0] > 0 else None
+        ignored = centre_line_misfit(mb)
+        if ignored is not None:
+            ignored = f"{rec.mask}: {ignored}"
+        backbone = pts if pts.shape[0] > 0 and ignored is None else None
     return Observation(
         frame=int(rec.frame),
         t_s=float(rec.t_s),
@@ -320,6 +396,7 @@ def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200)
         tail_px=tail,
         backbone_px=backbone,
         cam_T_grasper=rec.cam_T_grasper,
+        mask_ignored=ignored,
     )
 
 

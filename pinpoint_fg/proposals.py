@@ -44,7 +44,8 @@ import numpy as np
 
 from factors.lie import local, se3_exp, se3_inverse, se3_right_jacobian_inv
 from factors.residuals import as_pose_batch, needle_image_conic
-from pinpoint_fg.init import circle_poses_from_conic, fit_conic
+from pinpoint_fg.conic_fit import fit_conic
+from pinpoint_fg.init import circle_poses_from_conic
 from pinpoint_fg.likelihood import FrameLikelihood
 
 #: Two poses closer than (rotation rad, centre translation m) are one proposal (or one mode).

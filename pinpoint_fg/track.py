@@ -33,7 +33,7 @@ from pinpoint_fg.io.result.writer import ResultWriter
 from pinpoint_fg.io.spread_scale import SpreadScale, scaled_cov_xi, settings_entry
 from pinpoint_fg.likelihood import CONIC_DISTANCES, SWITCH_NAMES, Switches
 from pinpoint_fg.noise import NoiseConfig
-from pinpoint_fg.observe import recording_notes
+from pinpoint_fg.observe import ignored_masks_note, recording_notes
 from pinpoint_fg.offload import Offload, bimodality_verdict, to_frame_estimate  # noqa: F401 - track's public names
 from pinpoint_fg.posterior.summary import posterior_columns
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig
@@ -292,8 +292,11 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
                                                    str(Path(run).resolve()), weighted=(method in WEIGHTED_METHODS),
                                                    smoothed=config.window > 1,
                                                    recording_fingerprint=recording_fingerprint(recording)) as writer:
+        ignored: list[tuple[int, str]] = []
         for obs in tqdm(offload.observations(recording, frames), desc=f"{method} {recording.info.name}",
                         unit="frame", total=len(frames), disable=not show):
+            if obs.mask_ignored is not None:
+                ignored.append((obs.frame, obs.mask_ignored))
             try:
                 offload.submit(tracker.step(obs))
                 for row in offload.ready():
@@ -305,6 +308,8 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
                                  f"before it are in {out}", file=Path(run) / "frames.csv") from exc
         for row in offload.ready(wait=True):
             writer.write(scaled(row))
+        if ignored:
+            print(ignored_masks_note(Path(run), ignored), file=sys.stderr)
         final = getattr(tracker, "final_smoothed", None)
         if config.window > 1 and callable(final):
             for f, t, T in final():

@@ -7,7 +7,8 @@ import pytest
 
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
-from pinpoint_fg.init import circle_poses_from_conic, fit_conic, seed_particles
+from pinpoint_fg.conic_fit import fit_conic
+from pinpoint_fg.init import circle_poses_from_conic, seed_particles
 from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel
 from pinpoint_fg.observation import Observation
 

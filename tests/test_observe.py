@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import tempfile
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,11 +12,24 @@ import pytest
 
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import so3_exp
+from pinpoint_fg.conic_fit import conic_misfit_px
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import FrameRecord, RecordingInfo
 from pinpoint_fg.io.recording.writer import write_recording
-from pinpoint_fg.observe import backbone_from_mask, iter_observations, observe_frame, zhang_suen_thin
+from pinpoint_fg.observe import (
+    MISFIT_MIN_PX,
+    MISFIT_WIDTHS,
+    MaskBackbone,
+    backbone_from_mask,
+    centre_line_misfit,
+    ignored_masks_note,
+    iter_observations,
+    mask_backbone,
+    observe_frame,
+    zhang_suen_thin,
+)
+from pinpoint_fg.sim.scenarios import SCENARIOS, simulate
 
 CAM = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080, (-0.05, 0.01, 0.0, 0.0, 0.0))
 NEEDLE = NeedleModel()
@@ -215,3 +230,75 @@ def test_points_the_lens_model_cannot_undistort_are_a_located_error(tmp_path, mo
     with pytest.raises(InputError) as err:
         observe_frame(recording, recording.frames[1])
     assert err.value.file.endswith(".png") and "cannot be undistorted" in str(err.value)
+
+
+def _gate(mb: MaskBackbone) -> float:
+    return max(MISFIT_WIDTHS * mb.width_px, MISFIT_MIN_PX)
+
+
+def test_needle_masks_pass_the_centre_line_gate_with_margin() -> None:
+    """Rendered arcs with false blobs, face-on to nearly edge-on, antialiased or not: the centre-line's misfit to
+    its own conic stays below half the gate."""
+    rng = np.random.default_rng(11)
+    worst = 0.0
+    for k in range(40):
+        T = _random_pose(rng, min_cos_view=0.05 if k % 4 == 0 else 0.35)
+        mb = mask_backbone(_render_mask(rng, T, antialiased=bool(k % 2)), CAM)
+        assert centre_line_misfit(mb) is None, k
+        worst = max(worst, conic_misfit_px(mb.points_px) / _gate(mb))
+    assert worst < 0.5
+
+
+def test_simulated_masks_of_every_scenario_pass_the_gate() -> None:
+    """Every scenario (seed 12, which the gate's thresholds were not measured on): no mask is ignored."""
+    seen = 0
+    for scenario in SCENARIOS:
+        with tempfile.TemporaryDirectory() as tmp:
+            rec = read_recording(simulate(scenario, 24, seed=12, out=Path(tmp) / scenario))
+            for f in rec.frames:
+                if f.mask is None:
+                    continue
+                mb = mask_backbone(rec.load_mask(f), rec.info.camera)
+                assert centre_line_misfit(mb) is None, (scenario, f.frame)
+                seen += mb.points_px.shape[0] > 0
+    assert seen > 40
+
+
+def _garbage(kind: str, rng: np.random.Generator) -> np.ndarray:
+    h, w = CAM.height, CAM.width
+    mask = np.zeros((h, w), np.uint8)
+    if kind == "noise":
+        mask[:] = (rng.random((h, w)) < 0.5) * 255
+    elif kind == "box noise":
+        mask[100:300, 100:400] = (rng.random((200, 300)) < 0.5) * 255
+    elif kind == "stripes":
+        mask[::8, :] = 255
+    elif kind == "arc and a second wire":
+        cv2.ellipse(mask, (300, 200), (100, 60), 0, 0, 135, 255, 6)
+        cv2.ellipse(mask, (150, 380), (90, 40), 30, 0, 135, 255, 6)
+    return mask
+
+
+@pytest.mark.parametrize("kind", ["noise", "box noise", "stripes", "arc and a second wire"])
+def test_a_mask_that_is_no_curve_is_gated(kind: str) -> None:
+    mb = mask_backbone(_garbage(kind, np.random.default_rng(2)), CAM)
+    assert mb.points_px.shape[0] >= 100  # the mask does hold "wire": only the gate can tell
+    why = centre_line_misfit(mb)
+    assert why is not None and "best-fitting conic" in why
+    assert conic_misfit_px(mb.points_px) > 1.8 * _gate(mb)
+
+
+def test_a_gated_mask_gives_no_backbone_and_says_why(tmp_path) -> None:
+    info = RecordingInfo(name="noise", frame_rate_hz=30.0, camera=CAM, needle=NEEDLE)
+    rng = np.random.default_rng(4)
+    T = _random_pose(rng)
+    frames = [FrameRecord(frame=0, t_s=0.0), FrameRecord(frame=1, t_s=1 / 30)]
+    run = write_recording(tmp_path / "run", info, frames,
+                          masks={0: _garbage("noise", rng), 1: _render_mask(rng, T, antialiased=True)})
+    recording = read_recording(run)
+    noise, needle = (observe_frame(recording, f) for f in recording.frames)
+    assert noise.backbone_px is None and noise.mask_ignored is not None
+    assert noise.mask_ignored.startswith(str(recording.frames[0].mask) + ": ")
+    assert needle.backbone_px is not None and needle.mask_ignored is None
+    note = ignored_masks_note(Path(run), [(0, noise.mask_ignored)])
+    assert note.startswith(f"note: {run}: the masks of 1 frame(s) were ignored") and "frame 0" in note

@@ -6,12 +6,14 @@ from __future__ import annotations
 import ast
 import csv
 import io
+import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -157,3 +159,46 @@ def test_a_run_refused_on_reading_leaves_no_output_directory(tmp_path: Path) -> 
     kept.mkdir()  # the user's own empty directory stays
     assert main(["track", str(bad), "--method", "map", "--out", str(kept)]) == 2
     assert kept.is_dir()
+
+
+def test_masks_of_noise_are_ignored_as_if_absent(run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A mask that is no needle's centre-line (here random noise) is tracked as a frame without a mask, bit for
+    bit, and one ``note:`` line says how many and why."""
+    noisy, bare = tmp_path / "noisy", tmp_path / "bare"
+    for d in (noisy, bare):
+        shutil.copytree(run, d)
+    with open(run / "frames.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    masked = [r["mask"] for r in rows[:10] if r["mask"]][:2]
+    assert len(masked) == 2
+    rng = np.random.default_rng(0)
+    for name in masked:
+        shape = cv2.imread(str(run / name), cv2.IMREAD_UNCHANGED).shape
+        cv2.imwrite(str(noisy / name), ((rng.random(shape) < 0.5) * 255).astype(np.uint8))
+    for r in rows:
+        r["mask"] = "" if r["mask"] in masked else r["mask"]
+    with open(bare / "frames.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    for d in (noisy, bare):
+        capsys.readouterr()
+        track_recording(d, "map", tmp_path / f"out_{d.name}", progress=False, max_frames=10)
+    err = capsys.readouterr().err  # of the bare run: nothing ignored
+    assert "were ignored" not in err
+    assert _without_latency(tmp_path / "out_noisy" / "estimates.csv") == _without_latency(
+        tmp_path / "out_bare" / "estimates.csv")
+
+
+def test_the_ignored_masks_note(run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    noisy = tmp_path / "noisy"
+    shutil.copytree(run, noisy)
+    with open(run / "frames.csv", newline="") as fh:
+        first = next(r for r in csv.DictReader(fh) if r["mask"])
+    shape = cv2.imread(str(run / first["mask"]), cv2.IMREAD_UNCHANGED).shape
+    cv2.imwrite(str(noisy / first["mask"]), ((np.random.default_rng(1).random(shape) < 0.5) * 255).astype(np.uint8))
+    track_recording(noisy, "map", tmp_path / "out", progress=False, max_frames=4)
+    notes = [line for line in capsys.readouterr().err.splitlines() if "were ignored" in line]
+    assert len(notes) == 1
+    assert notes[0].startswith(f"note: {noisy}: the masks of 1 frame(s) were ignored")
+    assert f"frame {first['frame']}, {first['mask']}: its centre-line lies a median" in notes[0]

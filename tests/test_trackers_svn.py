@@ -7,7 +7,8 @@ import pytest
 
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import local, se3_exp
-from pinpoint_fg.init import circle_poses_from_conic, fit_conic
+from pinpoint_fg.conic_fit import fit_conic
+from pinpoint_fg.init import circle_poses_from_conic
 from pinpoint_fg.likelihood import FrameLikelihood, Switches
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.observation import Observation

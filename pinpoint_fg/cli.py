@@ -124,7 +124,7 @@ def _probability(text: str) -> float:
 def _cmd_validate(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.recording.reader import summarize_recording
     from pinpoint_fg.io.recording.validator import validate_run
-    from pinpoint_fg.observe import recording_notes
+    from pinpoint_fg.observe import ignored_masks, ignored_masks_note, recording_notes
 
     recording, errors = validate_run(args.run)
     if not errors and not recording.frames:  # valid as a format, but `track` has nothing to track: say so here too
@@ -137,6 +137,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     print(summarize_recording(recording))
     for note in recording_notes(recording):  # valid, but the user should know
         print(note, file=sys.stderr)
+    ignored = ignored_masks(recording)  # each mask's centre-line, as `track` reads it (~3 ms a mask)
+    if ignored:
+        print(ignored_masks_note(Path(args.run), ignored), file=sys.stderr)
     return 0
 
 

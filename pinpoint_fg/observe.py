@@ -306,11 +306,22 @@ def centre_line_misfit(backbone: MaskBackbone) -> str | None:
             f"({backbone.width_px:.1f} px) and {MISFIT_MIN_PX:g} px: not one needle (noise, texture or two objects?)")
 
 
+def ignored_masks(recording: Recording) -> list[tuple[int, str]]:
+    """``(frame, why)`` of every frame whose mask :func:`observe_frame` ignores (:func:`centre_line_misfit`)."""
+    out = []
+    for rec in recording.frames:
+        if rec.mask is not None:
+            why = observe_frame(recording, rec).mask_ignored
+            if why is not None:
+                out.append((int(rec.frame), why))
+    return out
+
+
 def ignored_masks_note(run: Path, ignored: list[tuple[int, str]]) -> str:
     """One ``note:`` line for the frames ``(frame, Observation.mask_ignored)`` whose masks were ignored."""
     frame, why = ignored[0]
-    return (f"note: {run}: the masks of {len(ignored)} frame(s) were ignored and those frames tracked from their "
-            f"keypoints and kinematics (first: frame {frame}, {why})")
+    return (f"note: {run}: the masks of {len(ignored)} frame(s) are ignored, those frames tracked from their keypoints "
+            f"and kinematics alone (first: frame {frame}, {why})")
 
 
 #: A keypoint cell more than this many pixels outside the image is not a detection (:func:`observe_frame`).

@@ -301,4 +301,4 @@ def test_a_gated_mask_gives_no_backbone_and_says_why(tmp_path) -> None:
     assert noise.mask_ignored.startswith(str(recording.frames[0].mask) + ": ")
     assert needle.backbone_px is not None and needle.mask_ignored is None
     note = ignored_masks_note(Path(run), [(0, noise.mask_ignored)])
-    assert note.startswith(f"note: {run}: the masks of 1 frame(s) were ignored") and "frame 0" in note
+    assert note.startswith(f"note: {run}: the masks of 1 frame(s) are ignored") and "frame 0" in note

@@ -185,12 +185,12 @@ def test_masks_of_noise_are_ignored_as_if_absent(run: Path, tmp_path: Path, caps
         capsys.readouterr()
         track_recording(d, "map", tmp_path / f"out_{d.name}", progress=False, max_frames=10)
     err = capsys.readouterr().err  # of the bare run: nothing ignored
-    assert "were ignored" not in err
+    assert "the masks of" not in err
     assert _without_latency(tmp_path / "out_noisy" / "estimates.csv") == _without_latency(
         tmp_path / "out_bare" / "estimates.csv")
 
 
-def test_the_ignored_masks_note(run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_track_and_validate_note_the_ignored_masks(run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     noisy = tmp_path / "noisy"
     shutil.copytree(run, noisy)
     with open(run / "frames.csv", newline="") as fh:
@@ -198,7 +198,9 @@ def test_the_ignored_masks_note(run: Path, tmp_path: Path, capsys: pytest.Captur
     shape = cv2.imread(str(run / first["mask"]), cv2.IMREAD_UNCHANGED).shape
     cv2.imwrite(str(noisy / first["mask"]), ((np.random.default_rng(1).random(shape) < 0.5) * 255).astype(np.uint8))
     track_recording(noisy, "map", tmp_path / "out", progress=False, max_frames=4)
-    notes = [line for line in capsys.readouterr().err.splitlines() if "were ignored" in line]
+    notes = [line for line in capsys.readouterr().err.splitlines() if "the masks of" in line]
     assert len(notes) == 1
-    assert notes[0].startswith(f"note: {noisy}: the masks of 1 frame(s) were ignored")
+    assert notes[0].startswith(f"note: {noisy}: the masks of 1 frame(s) are ignored")
     assert f"frame {first['frame']}, {first['mask']}: its centre-line lies a median" in notes[0]
+    assert main(["validate", str(noisy)]) == 0  # says the same before tracking
+    assert [line for line in capsys.readouterr().err.splitlines() if "the masks of" in line] == notes

@@ -137,7 +137,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     print(summarize_recording(recording))
     for note in recording_notes(recording):  # valid, but the user should know
         print(note, file=sys.stderr)
-    ignored = ignored_masks(recording)  # each mask's centre-line, as `track` reads it (~3 ms a mask)
+    ignored = ignored_masks(recording)  # every mask's centre-line, read as `track` reads it
     if ignored:
         print(ignored_masks_note(Path(args.run), ignored), file=sys.stderr)
     return 0

@@ -33,7 +33,8 @@ def fit_conic(points_px: np.ndarray) -> np.ndarray | None:
 
 def sampson_distance_px(C: np.ndarray, points_px: np.ndarray) -> np.ndarray:
     """``(M,)`` first-order distance ``|f(p)| / |grad f(p)|`` of pixels ``(M, 2)`` to conic ``C`` (3, 3), pixels,
-    ``f(p) = [p; 1]^T C [p; 1]``; ``inf`` where the gradient vanishes (the centre of a degenerate conic)."""
+    ``f(p) = [p; 1]^T C [p; 1]``; ``inf`` where the gradient vanishes (the centre of a line pair, or anywhere on
+    a double line, where ``f`` vanishes too: not a distance there)."""
     P = np.concatenate([np.asarray(points_px, dtype=float), np.ones((len(points_px), 1))], axis=1)
     CP = P @ C
     f = np.einsum("ni,ni->n", CP, P)
@@ -42,12 +43,28 @@ def sampson_distance_px(C: np.ndarray, points_px: np.ndarray) -> np.ndarray:
         return np.where(g > 0.0, np.abs(f) / g, np.inf)
 
 
+def line_distance_px(points_px: np.ndarray) -> np.ndarray:
+    """``(M,)`` distance of pixels ``(M, 2)`` to their total-least-squares line (through their mean, along their
+    principal direction), pixels."""
+    p = np.asarray(points_px, dtype=float)
+    q = p - p.mean(axis=0)
+    _, _, Vt = np.linalg.svd(q, full_matrices=False)
+    return np.abs(q @ Vt[-1])
+
+
 def conic_misfit_px(points_px: np.ndarray) -> float:
-    """Median :func:`sampson_distance_px` of pixels ``(M, 2)`` to their own :func:`fit_conic`, pixels (0 if M < 5).
+    """How far pixels ``(M, 2)`` lie from one conic, pixels: the median :func:`sampson_distance_px` to their own
+    :func:`fit_conic`, or the median :func:`line_distance_px` to their own line when that is smaller (0 if M < 5).
 
     A needle's centre-line (an arc, or the line an edge-on needle projects to) scores a fraction of a pixel to a
     pixel or two; pixels spread over an area (a mask of noise or texture), or two wires of different curves,
-    score tens. The median ignores up to half the pixels: a spur or a short second blob does not move it.
+    score tens. The median ignores up to half the pixels: a spur or a short second blob does not move it. The
+    line is a conic too (a degenerate one), fitted on its own because the algebraic fit is not unique for
+    collinear pixels: any line pair through them fits, and the one the SVD returns can be a double line, on which
+    the Sampson distance is 0/0.
     """
+    if len(points_px) < 5:
+        return 0.0
     C = fit_conic(points_px)
-    return 0.0 if C is None else float(np.median(sampson_distance_px(C, points_px)))
+    line = float(np.median(line_distance_px(points_px)))
+    return line if C is None else min(line, float(np.median(sampson_distance_px(C, points_px))))

@@ -26,7 +26,8 @@ class Observation:
     tail_px: np.ndarray | None = None
     """Tail keypoint ``(2,)``, undistorted pixels."""
     backbone_px: np.ndarray | None = None
-    """Backbone centre-line pixels ``(M, 2)``, undistorted; None when no mask this frame (M >= 1 otherwise)."""
+    """Backbone centre-line pixels ``(M, 2)``, undistorted; None when the frame has no mask, an empty one or one
+    that is ignored (``mask_ignored``); M >= 1 otherwise."""
     cam_T_grasper: np.ndarray | None = None
     """Grasper pose from kinematics ``(4, 4)``: origin = grasp point, z axis = grasper axis."""
     mask_ignored: str | None = None

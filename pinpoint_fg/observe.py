@@ -29,8 +29,9 @@ camera image) into at most ``max_points`` undistorted pixels on the needle's cen
 6. **Undistort** with :meth:`PinholeCamera.undistort_px`.
 
 :func:`observe_frame` then checks that the pixels can be one needle's centre-line at all: they must lie on
-their own best-fitting conic to within the wire's width (:func:`centre_line_misfit`); a mask of noise or
-texture is ignored, with the reason in the observation, instead of being fitted.
+their own best-fitting conic to within the wire's width or 3 px, whichever is larger
+(:func:`centre_line_misfit`); a mask of noise or texture is ignored, with the reason in the observation,
+instead of being fitted.
 
 The wire width ``w`` used in step 5 is estimated as blob area / skeleton length. Skeleton
 pixels within ``w`` of the image border are dropped before step 4: where the image frame
@@ -161,6 +162,11 @@ def _refine_across(
     return np.stack([r + shift * n_row, c + shift * n_col], axis=1)
 
 
+#: :attr:`MaskBackbone.thickness_px` reads this quantile of the skeleton's distances to the background: the
+#: centre-line's, above its side branches' (which run out to the boundary).
+THICKNESS_QUANTILE = 0.9
+
+
 @dataclass(frozen=True)
 class MaskBackbone:
     """What :func:`mask_backbone` reads from a mask."""
@@ -169,6 +175,11 @@ class MaskBackbone:
     """Undistorted centre-line pixels ``(M, 2)`` as (u, v); ``(0, 2)`` when the mask holds no wire."""
     width_px: float
     """The wire's mean width in the mask, pixels: the kept blobs' area over their skeleton length (0 if none)."""
+    thickness_px: float
+    """The wire's width across its centre-line, pixels: ``2 d - 1`` with ``d`` the :data:`THICKNESS_QUANTILE` of
+    the skeleton pixels' distance to the background (0 if none). Unlike ``width_px`` it does not shrink when a
+    rough boundary or holes give the skeleton side branches and loops (a 32 px wire with a boundary jagged by
+    ±4 px: ``width_px`` 6-8, ``thickness_px`` 22-23)."""
 
 
 def mask_backbone(
@@ -210,7 +221,7 @@ def mask_backbone(
         binary = (m != 0).astype(np.uint8)
     fg = cv2.findNonZero(binary)
     if fg is None:
-        return MaskBackbone(np.zeros((0, 2)), 0.0)
+        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
     fg = fg.reshape(-1, 2)  # (N, 2) as (u, v)
     u_lo, v_lo = fg.min(axis=0)
     u_hi, v_hi = fg.max(axis=0)
@@ -224,7 +235,7 @@ def mask_backbone(
     keep[0] = False
     kept = fg[keep[fg_label]]
     if kept.shape[0] == 0:
-        return MaskBackbone(np.zeros((0, 2)), 0.0)
+        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
     c0, r0 = kept.min(axis=0)
     c1, r1 = kept.max(axis=0) + 1
     crop = np.zeros((r1 - r0, c1 - c0), dtype=np.uint8)
@@ -232,7 +243,7 @@ def mask_backbone(
     skeleton = zhang_suen_thin(crop)
     rows, cols = np.nonzero(skeleton)
     if rows.size == 0:
-        return MaskBackbone(np.zeros((0, 2)), 0.0)
+        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
     # compact blobs (skeleton length^2 / area < min_elongation) are specks, not wire; the largest stays
     sk_label = labels[rows + (r0 - v_lo), cols + (c0 - u_lo)]
     length = np.bincount(sk_label, minlength=areas.size).astype(float)
@@ -241,6 +252,11 @@ def mask_backbone(
     on_wire = wire[sk_label]
     rows, cols = rows[on_wire], cols[on_wire]
     width_px = float(areas[wire].sum()) / float(rows.size)
+    # the skeleton's side branches into a rough boundary lengthen it and shrink width_px; the distance to the
+    # background on the centre-line does not shrink: 2 d - 1 is the width of a band whose middle pixel is d away
+    padded = cv2.copyMakeBorder(crop, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)  # outside the crop is background
+    dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    thickness_px = max(2.0 * float(np.quantile(dist[rows + 1, cols + 1], THICKNESS_QUANTILE)) - 1.0, 0.0)
     # where the image frame cuts the wire the centre-line bends towards the cut: drop that stretch
     border = int(np.ceil(width_px))
     h, w = m.shape
@@ -249,14 +265,14 @@ def mask_backbone(
     )
     rows, cols = rows[inner], cols[inner]
     if rows.size == 0:
-        return MaskBackbone(np.zeros((0, 2)), 0.0)
+        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
     count = min(int(max_points), rows.size)
     idx = (np.arange(count) * rows.size) // count
     pts_rc = np.stack([rows[idx], cols[idx]], axis=1).astype(float)
     if refine:
         pts_rc = _refine_across(crop, pts_rc, width_px)
     pts_px = np.stack([pts_rc[:, 1] + c0, pts_rc[:, 0] + r0], axis=1)
-    return MaskBackbone(camera.undistort_px(pts_px), width_px)
+    return MaskBackbone(camera.undistort_px(pts_px), width_px, thickness_px)
 
 
 def backbone_from_mask(
@@ -282,28 +298,33 @@ MISFIT_MIN_PX = 3.0
 
 
 def centre_line_misfit(backbone: MaskBackbone) -> str | None:
-    """Why ``backbone``'s pixels cannot be a needle's centre-line, or None (also when it is empty).
+    """Why ``backbone``'s pixels cannot be a needle's centre-line, or None (also when it has fewer than five: five
+    pixels fix a conic, so they cannot be tested).
 
     A needle's centre-line is an arc of the circle's image conic (a line when seen edge-on), so its pixels lie
     on their own least-squares conic to within the mask's noise: :func:`pinpoint_fg.conic_fit.conic_misfit_px`
-    (median Sampson distance). The gate is that median above :data:`MISFIT_WIDTHS` wire widths and
+    (median Sampson distance, or distance to a line). The gate is that median above :data:`MISFIT_WIDTHS` wire
+    widths (the larger of :attr:`MaskBackbone.width_px` and :attr:`~MaskBackbone.thickness_px`) and
     :data:`MISFIT_MIN_PX` pixels. On 6,349 simulated mask frames (every scenario, seeds 1-8, drive 9-14,
     snapshots 9-20; ``scripts/mask_gate.py measure``) the median was at most 2.1 px and 0.26 widths;
-    masks of random noise (20 or 50 % of the pixels), stripes, or an arc beside a second wire scored 2.0-107
+    masks of random noise (20 or 50 % of the pixels), stripes, or an arc beside a second wire scored 2-107
     widths and 3.0-127 px. Such a frame's mask is ignored (the frame keeps its keypoints and kinematics):
     fitted, 16 noise masks among normal-01's 49 (``scripts/mask_gate.py corrupt``) took SVN's mean error to
     2.61 mm / 31.8 deg and MAP's to 3.12 mm / 39.5 deg; with 14 ignored, 0.55 / 7.5 and 0.59 / 7.6. Not caught:
     noise sparse enough to leave a few specks (the other two, 1.5 and 2.3 px: a conic passes near five specks),
     and a mask holding one straight line or one clean arc that is not the needle (an edge-on needle looks alike).
+    Ignored although a needle: a wire split lengthwise into two rims (a missed specular line: two curves about a
+    quarter of the wire apart) and a needle whose mask includes a long, wavy suture thread.
     """
     if backbone.points_px.shape[0] < 5:
         return None
     misfit = conic_misfit_px(backbone.points_px)
-    gate = max(MISFIT_WIDTHS * backbone.width_px, MISFIT_MIN_PX)
+    wire_px = max(backbone.width_px, backbone.thickness_px)
+    gate = max(MISFIT_WIDTHS * wire_px, MISFIT_MIN_PX)
     if misfit <= gate:
         return None
-    return (f"its centre-line lies a median {misfit:.1f} px off its best-fitting conic, more than the wire's width "
-            f"({backbone.width_px:.1f} px) and {MISFIT_MIN_PX:g} px: not one needle (noise, texture or two objects?)")
+    return (f"its centre-line lies a median {misfit:.2f} px off its best-fitting conic, more than the wire's width "
+            f"({wire_px:.2f} px) and {MISFIT_MIN_PX:g} px: no single thin curve (noise, texture, a second object?)")
 
 
 def ignored_masks(recording: Recording) -> list[tuple[int, str]]:
@@ -320,8 +341,8 @@ def ignored_masks(recording: Recording) -> list[tuple[int, str]]:
 def ignored_masks_note(run: Path, ignored: list[tuple[int, str]]) -> str:
     """One ``note:`` line for the frames ``(frame, Observation.mask_ignored)`` whose masks were ignored."""
     frame, why = ignored[0]
-    return (f"note: {run}: the masks of {len(ignored)} frame(s) are ignored, those frames tracked from their keypoints "
-            f"and kinematics alone (first: frame {frame}, {why})")
+    return (f"note: {run}: the masks of {len(ignored)} frame(s) are ignored, those frames tracked without them "
+            f"(first: frame {frame}, {why})")
 
 
 #: A keypoint cell more than this many pixels outside the image is not a detection (:func:`observe_frame`).

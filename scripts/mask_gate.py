@@ -6,11 +6,12 @@ Usage::
     .venv/bin/python scripts/mask_gate.py corrupt RUN OUT [--seed 5]
 
 ``measure`` reads every mask of the runs (e.g. ``/tmp/runs/*-0[1-8]``: ``pinpoint-fg simulate --scenario S
---frames 150 --seed K``) and prints percentiles of the wire width, of the centre-line's median distance to its own
-conic (pixels) and of that distance in wire widths, the worst frame, and how many masks the gate ignores (0 on
-valid runs). ``corrupt`` copies RUN to OUT with masks replaced by random noise: the first five by 50 % noise and
-every fourth after by 20 % noise; then ``pinpoint-fg track OUT`` (it prints the ignored masks' note) and
-``pinpoint-fg evaluate`` show what the gate saves (README, *Bad input*; compare a tree before the gate).
+--frames 150 --seed K``) and prints percentiles of the wire's width (the larger of ``width_px`` and
+``thickness_px``), of the centre-line's median distance to its own conic (pixels) and of that distance in wire
+widths, the worst frame, and how many masks the gate ignores (0 on valid runs). ``corrupt`` copies RUN to OUT with
+masks replaced by random noise: the first five by 50 % noise and every fourth after by 20 % noise; then
+``pinpoint-fg track OUT`` (it prints the ignored masks' note) and ``pinpoint-fg evaluate`` show what the gate
+saves (README, *Bad input*; compare a tree before the gate).
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ def measure(runs: list[Path]) -> None:
             mb = mask_backbone(rec.load_mask(f), rec.info.camera)
             if mb.points_px.shape[0] == 0:
                 continue
-            rows.append((run.name, f.frame, mb.width_px, conic_misfit_px(mb.points_px), centre_line_misfit(mb)))
+            wire = max(mb.width_px, mb.thickness_px)
+            rows.append((run.name, f.frame, wire, conic_misfit_px(mb.points_px), centre_line_misfit(mb)))
     w, mis = np.array([r[2] for r in rows]), np.array([r[3] for r in rows])
     q = [0, 1, 50, 99, 99.9, 100]
     print(f"{len(rows)} mask frames of {len(runs)} runs; percentiles {q}")

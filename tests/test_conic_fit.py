@@ -54,3 +54,14 @@ def test_misfit_separates_a_noisy_arc_from_scattered_points() -> None:
     line = np.stack([np.linspace(0, 300, 100), 0.2 * np.linspace(0, 300, 100) + 5], 1)
     assert conic_misfit_px(line) < 1e-6  # an edge-on needle's image: a degenerate conic fits it
     assert fit_conic(pts[:4]) is None and conic_misfit_px(pts[:4]) == 0.0
+
+
+@pytest.mark.parametrize("direction", [(0.0, 1.0), (1.0, 0.0), (1.0, 1.0), (1.0, 0.2), (0.3, -1.0)])
+def test_exactly_collinear_pixels_fit_their_line(direction: tuple[float, float]) -> None:
+    """Collinear pixels (an edge-on needle's image) have many least-squares conics, among them double lines on
+    which the Sampson distance is 0/0: the misfit is then the distance to their line, 0."""
+    t = np.linspace(-200.0, 200.0, 200)
+    pts = np.array([539.5, 539.5]) + t[:, None] * np.asarray(direction) / np.hypot(*direction)
+    assert conic_misfit_px(pts) < 1e-9
+    rng = np.random.default_rng(1)
+    assert conic_misfit_px(pts + rng.normal(scale=0.5, size=pts.shape)) < 0.6

@@ -302,3 +302,31 @@ def test_a_gated_mask_gives_no_backbone_and_says_why(tmp_path) -> None:
     assert needle.backbone_px is not None and needle.mask_ignored is None
     note = ignored_masks_note(Path(run), [(0, noise.mask_ignored)])
     assert note.startswith(f"note: {run}: the masks of 1 frame(s) are ignored") and "frame 0" in note
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_thick_wire_with_a_rough_boundary_passes(seed: int) -> None:
+    """A close needle (32 px wire) whose boundary is jagged by up to ±4 px: its skeleton grows side branches, so
+    the area over the skeleton's length (``width_px``) falls to 6-8 px, below the misfit (7-9 px); the thickness
+    across the centre-line (``thickness_px``) stays near the distance between the rough edges, and the mask is
+    kept."""
+    rng = np.random.default_rng(seed)
+    band = np.zeros((CAM.height, CAM.width), np.uint8)
+    cv2.ellipse(band, (540, 540), (380, 260), 20, 0, 135, 255, 32)
+    inside = cv2.distanceTransform(band, cv2.DIST_L2, 5) - cv2.distanceTransform(255 - band, cv2.DIST_L2, 5)
+    rough = cv2.GaussianBlur(rng.normal(size=band.shape).astype(np.float32), (0, 0), 1.5)
+    mask = ((inside + 4.0 * rough / rough.std()) > 0).astype(np.uint8) * 255
+    mb = mask_backbone(mask, CAM)
+    assert mb.width_px < 12.0 < 18.0 < mb.thickness_px < 40.0
+    assert centre_line_misfit(mb) is None
+    assert conic_misfit_px(mb.points_px) < 0.6 * mb.thickness_px
+
+
+def test_an_exactly_straight_needle_is_kept() -> None:
+    """Edge-on, its mask is a straight band: along an image axis through the principal point even the lens keeps
+    it straight, and the centre-line's pixels are exactly collinear (they scored an infinite misfit before)."""
+    for rows, cols in ((slice(530, 550), slice(300, 800)), (slice(300, 800), slice(535, 545))):
+        mask = np.zeros((CAM.height, CAM.width), np.uint8)
+        mask[rows, cols] = 255
+        mb = mask_backbone(mask, CAM)
+        assert mb.points_px.shape[0] >= 100 and centre_line_misfit(mb) is None

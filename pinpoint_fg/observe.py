@@ -314,7 +314,9 @@ def centre_line_misfit(backbone: MaskBackbone) -> str | None:
     noise sparse enough to leave a few specks (the other two, 1.5 and 2.3 px: a conic passes near five specks),
     and a mask holding one straight line or one clean arc that is not the needle (an edge-on needle looks alike).
     Ignored although a needle: a wire split lengthwise into two rims (a missed specular line: two curves about a
-    quarter of the wire apart) and a needle whose mask includes a long, wavy suture thread.
+    quarter of the wire apart) and a needle whose mask includes a long, wavy suture thread. A thread in every mask
+    defeats every tracker with the gate or without (README, *Bad input*): the least-squares conic runs between
+    needle and thread, within the wire's width of most pixels.
     """
     if backbone.points_px.shape[0] < 5:
         return None

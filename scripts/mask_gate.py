@@ -3,15 +3,16 @@
 Usage::
 
     .venv/bin/python scripts/mask_gate.py measure RUN [RUN ...]
-    .venv/bin/python scripts/mask_gate.py corrupt RUN OUT [--seed 5]
+    .venv/bin/python scripts/mask_gate.py corrupt RUN OUT [--seed 5] [--kind noise|thread]
 
 ``measure`` reads every mask of the runs (e.g. ``/tmp/runs/*-0[1-8]``: ``pinpoint-fg simulate --scenario S
 --frames 150 --seed K``) and prints percentiles of the wire's width (the larger of ``width_px`` and
 ``thickness_px``), of the centre-line's median distance to its own conic (pixels) and of that distance in wire
 widths, the worst frame, and how many masks the gate ignores (0 on valid runs). ``corrupt`` copies RUN to OUT with
-masks replaced by random noise: the first five by 50 % noise and every fourth after by 20 % noise; then
-``pinpoint-fg track OUT`` (it prints the ignored masks' note) and ``pinpoint-fg evaluate`` show what the gate
-saves (README, *Bad input*; compare a tree before the gate).
+masks changed: ``--kind noise`` replaces the first five by 50 % noise and every fourth after by 20 % noise;
+``--kind thread`` draws into every mask a suture thread leaving the needle's tail (ground truth), 2-5 px wide,
+100-400 px long, waving by 5-40 px. Then ``pinpoint-fg track OUT`` (it prints the ignored masks' note) and
+``pinpoint-fg evaluate`` show what the gate does (README, *Bad input*; compare a tree before it).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def measure(runs: list[Path]) -> None:
     print(f"  ignored by the gate: {sum(r[4] is not None for r in rows)}")
 
 
-def corrupt(run: Path, out: Path, seed: int) -> None:
+def corrupt(run: Path, out: Path, seed: int, kind: str) -> None:
     if out.exists():
         raise SystemExit(f"{out} exists")
     shutil.copytree(run, out)
@@ -58,11 +59,22 @@ def corrupt(run: Path, out: Path, seed: int) -> None:
     rng = np.random.default_rng(seed)
     masked = [f for f in rec.frames if f.mask is not None]
     for i, f in enumerate(masked):
-        if i < 5 or i % 4 == 0:
-            path = out / f.mask
-            shape = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape
-            cv2.imwrite(str(path), ((rng.random(shape) < (0.5 if i < 5 else 0.2)) * 255).astype(np.uint8))
+        path = out / f.mask
+        mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if kind == "noise" and (i < 5 or i % 4 == 0):
+            cv2.imwrite(str(path), ((rng.random(mask.shape) < (0.5 if i < 5 else 0.2)) * 255).astype(np.uint8))
             print(f"frame {f.frame}: {f.mask} is noise")
+        elif kind == "thread" and f.cam_T_needle_gt is not None:
+            T, needle, camera = f.cam_T_needle_gt, rec.info.needle, rec.info.camera
+            tail = camera.distort_px(camera.project(needle.point(np.array([0.0])) @ T[:3, :3].T + T[:3, 3]))[0]
+            s = np.linspace(0.0, 1.0, 200)[:, None]
+            d = rng.normal(size=2)
+            d /= np.linalg.norm(d)
+            length = rng.uniform(100, 400)
+            wave = np.sin(s[:, 0] * rng.uniform(3, 12)) * rng.uniform(5, 40)
+            pts = tail + s * length * d + np.outer(wave, [-d[1], d[0]])
+            cv2.polylines(mask, [np.round(pts).astype(np.int32)], False, 255, int(rng.integers(2, 6)))
+            cv2.imwrite(str(path), mask)
 
 
 def main() -> None:
@@ -74,11 +86,12 @@ def main() -> None:
     c.add_argument("run", type=Path)
     c.add_argument("out", type=Path)
     c.add_argument("--seed", type=int, default=5)
+    c.add_argument("--kind", choices=("noise", "thread"), default="noise")
     args = ap.parse_args()
     if args.cmd == "measure":
         measure(args.runs)
     else:
-        corrupt(args.run, args.out, args.seed)
+        corrupt(args.run, args.out, args.seed, args.kind)
 
 
 if __name__ == "__main__":

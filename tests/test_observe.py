@@ -330,3 +330,22 @@ def test_an_exactly_straight_needle_is_kept() -> None:
         mask[rows, cols] = 255
         mb = mask_backbone(mask, CAM)
         assert mb.points_px.shape[0] >= 100 and centre_line_misfit(mb) is None
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_a_two_pixel_diagonal_staircase_keeps_its_centre_line(flip: bool) -> None:
+    """Zhang-Suen erodes a wire two pixels wide on a diagonal (pixel pairs (i, i), (i, i + 1)) to two pixels;
+    thinned again at three times the resolution it gives its whole centre-line, on either diagonal."""
+    cam = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080, (0.0, 0.0, 0.0, 0.0, 0.0))
+    stairs = np.zeros((400, 400), np.uint8)
+    idx = np.arange(50, 350)
+    stairs[idx, idx] = stairs[idx, idx + 1] = 1
+    assert zhang_suen_thin(stairs).sum() <= 2  # the reason for the second pass
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    mask[300:700, 300:700] = (stairs[:, ::-1] if flip else stairs) * 255
+    pts = backbone_from_mask(mask, cam)
+    assert pts.shape[0] == 200
+    u, v = pts[:, 0] - 300.0, pts[:, 1] - 300.0
+    off = np.abs((399.0 - u) - v - 0.5) if flip else np.abs(u - v - 0.5)  # the staircase's middle line
+    assert off.max() < 1.0
+    assert np.ptp(v) > 250  # it spans the staircase, not a point

@@ -52,7 +52,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -313,19 +313,9 @@ def mask_backbone(
     return MaskBackbone(camera.undistort_px(pts_px), width_px, thickness_px)
 
 
-def backbone_from_mask(
-    mask: np.ndarray,
-    camera: PinholeCamera,
-    max_points: int = 200,
-    min_blob_px: int = 40,
-    min_blob_fraction: float = 0.1,
-    min_elongation: float = 2.0,
-    refine: bool = True,
-    file: str | Path | None = None,
-) -> np.ndarray:
-    """:func:`mask_backbone`'s centre-line pixels ``(M, 2)`` alone (the same arguments)."""
-    return mask_backbone(mask, camera, max_points, min_blob_px, min_blob_fraction, min_elongation, refine,
-                         file).points_px
+def backbone_from_mask(mask: np.ndarray, camera: PinholeCamera, **options: Any) -> np.ndarray:
+    """:func:`mask_backbone`'s centre-line pixels ``(M, 2)`` alone (``options``: its keyword arguments)."""
+    return mask_backbone(mask, camera, **options).points_px
 
 
 #: A mask's centre-line is no needle's when its median distance to its own best-fitting conic exceeds this many

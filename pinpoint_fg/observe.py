@@ -167,6 +167,11 @@ def _refine_across(
     return np.stack([r + shift * n_row, c + shift * n_col], axis=1)
 
 
+#: A mask with more of its pixels nonzero than this share holds no needle (:func:`mask_backbone` does not read it;
+#: :func:`centre_line_misfit` says why): a needle's wire covers at most a few per cent of the image (a 32 px wire
+#: 700 px long: 2 % of 1080 x 1080), an inverted mask (the needle zero) or one of noise most of it.
+MAX_FOREGROUND_SHARE = 0.25
+
 #: :attr:`MaskBackbone.thickness_px` reads this quantile of the skeleton's distances to the background: the
 #: centre-line's, above its side branches' (which run out to the boundary).
 THICKNESS_QUANTILE = 0.9
@@ -209,6 +214,9 @@ class MaskBackbone:
     the skeleton pixels' distance to the background (0 if none). Unlike ``width_px`` it does not shrink when a
     rough boundary or holes give the skeleton side branches and loops (a 32 px wire with a boundary jagged by
     ±4 px: ``width_px`` 6-8, ``thickness_px`` 22-23)."""
+    foreground_share: float = 0.0
+    """The share of the image's pixels that are nonzero; above :data:`MAX_FOREGROUND_SHARE` the mask is not read
+    (no points)."""
 
 
 def mask_backbone(
@@ -251,6 +259,9 @@ def mask_backbone(
     fg = cv2.findNonZero(binary)
     if fg is None:
         return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
+    share = fg.shape[0] / float(binary.size)
+    if share > MAX_FOREGROUND_SHARE:  # not thinned: ~1.4 s for an inverted 1080 x 1080 mask, and no wire in it
+        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0, share)
     fg = fg.reshape(-1, 2)  # (N, 2) as (u, v)
     u_lo, v_lo = fg.min(axis=0)
     u_hi, v_hi = fg.max(axis=0)
@@ -327,7 +338,8 @@ MISFIT_MIN_PX = 3.0
 
 def centre_line_misfit(backbone: MaskBackbone) -> str | None:
     """Why ``backbone``'s pixels cannot be a needle's centre-line, or None (also when it has fewer than five: five
-    pixels fix a conic, so they cannot be tested).
+    pixels fix a conic, so they cannot be tested). First, a mask more than :data:`MAX_FOREGROUND_SHARE` nonzero
+    is no needle's.
 
     A needle's centre-line is an arc of the circle's image conic (a line when seen edge-on), so its pixels lie
     on their own least-squares conic to within the mask's noise: :func:`pinpoint_fg.conic_fit.conic_misfit_px`
@@ -346,6 +358,9 @@ def centre_line_misfit(backbone: MaskBackbone) -> str | None:
     defeats every tracker with the gate or without (README, *Bad input*): the least-squares conic runs between
     needle and thread, within the wire's width of most pixels.
     """
+    if backbone.foreground_share > MAX_FOREGROUND_SHARE:
+        return (f"{backbone.foreground_share:.0%} of its pixels are nonzero, more than any needle covers: an inverted "
+                "mask (nonzero must be the needle) or noise?")
     if backbone.points_px.shape[0] < 5:
         return None
     misfit = conic_misfit_px(backbone.points_px)

@@ -268,7 +268,7 @@ def _garbage(kind: str, rng: np.random.Generator) -> np.ndarray:
     h, w = CAM.height, CAM.width
     mask = np.zeros((h, w), np.uint8)
     if kind == "noise":
-        mask[:] = (rng.random((h, w)) < 0.5) * 255
+        mask[:] = (rng.random((h, w)) < 0.2) * 255
     elif kind == "box noise":
         mask[100:300, 100:400] = (rng.random((200, 300)) < 0.5) * 255
     elif kind == "stripes":
@@ -349,3 +349,18 @@ def test_a_two_pixel_diagonal_staircase_keeps_its_centre_line(flip: bool) -> Non
     off = np.abs((399.0 - u) - v - 0.5) if flip else np.abs(u - v - 0.5)  # the staircase's middle line
     assert off.max() < 1.0
     assert np.ptp(v) > 250  # it spans the staircase, not a point
+
+
+@pytest.mark.parametrize("kind", ["inverted", "all nonzero", "half noise"])
+def test_a_mask_mostly_nonzero_is_not_read(kind: str) -> None:
+    """An inverted mask (the needle zero, the rest nonzero), an all-nonzero one or 50 % noise: no needle covers a
+    quarter of the image. The mask is not thinned (an inverted one took ~1.4 s and gave no pixel, silently)."""
+    rng = np.random.default_rng(5)
+    needle = _render_mask(rng, _random_pose(rng), antialiased=False, blobs=0)
+    mask = {"inverted": np.where(needle > 0, 0, 255), "all nonzero": np.full_like(needle, 255),
+            "half noise": (rng.random(needle.shape) < 0.5) * 255}[kind].astype(np.uint8)
+    mb = mask_backbone(mask, CAM)
+    assert mb.points_px.shape == (0, 2) and mb.foreground_share > 0.45
+    why = centre_line_misfit(mb)
+    assert why is not None and "inverted mask" in why
+    assert centre_line_misfit(mask_backbone(needle, CAM)) is None and mask_backbone(needle, CAM).foreground_share < 0.01

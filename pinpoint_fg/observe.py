@@ -383,10 +383,11 @@ def ignored_masks(recording: Recording) -> list[tuple[int, str]]:
     return out
 
 
-def ignored_masks_note(run: Path, ignored: list[tuple[int, str]]) -> str:
-    """One ``note:`` line for the frames ``(frame, Observation.mask_ignored)`` whose masks were ignored."""
+def ignored_masks_note(run: Path, ignored: list[tuple[int, str]], fate: str = "tracked") -> str:
+    """One ``note:`` line for the frames ``(frame, Observation.mask_ignored)`` whose masks were ignored, which are
+    ``fate`` without them."""
     frame, why = ignored[0]
-    return (f"note: {run}: the masks of {len(ignored)} frame(s) are ignored, those frames tracked without them "
+    return (f"note: {run}: the masks of {len(ignored)} frame(s) are ignored, those frames {fate} without them "
             f"(first: frame {frame}, {why})")
 
 

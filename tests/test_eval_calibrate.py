@@ -291,3 +291,28 @@ def test_ground_truth_in_the_wrong_unit_throughout_is_refused(tmp_path: Path,
     assert "metres expected" in str(exc.value)
     assert main(["calibrate", str(bad), "--out", str(tmp_path / "n.json")]) == 2
     assert not (tmp_path / "n.json").exists()
+
+
+def test_a_mask_of_noise_is_calibrated_without_and_named(tmp_path: Path) -> None:
+    """A mask that is no needle's (here half noise) adds nothing to the conic's samples (the calibration equals
+    that of the run without it), and one note names it."""
+    import shutil
+
+    import cv2
+
+    src = simulate("calibration", 30, seed=2, out=tmp_path / "run", config=WHITE)
+    rec = read_recording(src)
+    f = next(r for r in rec.frames if r.mask is not None)
+    noisy = tmp_path / "noisy"
+    shutil.copytree(src, noisy)
+    shape = cv2.imread(str(src / f.mask), cv2.IMREAD_UNCHANGED).shape
+    cv2.imwrite(str(noisy / f.mask), ((np.random.default_rng(0).random(shape) < 0.5) * 255).astype(np.uint8))
+    bare = tmp_path / "bare"
+    shutil.copytree(src, bare)
+    cv2.imwrite(str(bare / f.mask), np.zeros(shape, np.uint8))  # an empty mask: no backbone
+    notes: list[str] = []
+    noise = calibrate_runs([noisy], notes=notes)
+    assert noise.to_json() == calibrate_runs([bare]).to_json() != calibrate_runs([src]).to_json()
+    assert len(notes) == 1
+    assert notes[0].startswith(f"note: {noisy}: the masks of 1 frame(s) are ignored, those frames calibrated")
+    assert f"frame {f.frame}, {f.mask}: " in notes[0]

@@ -59,7 +59,7 @@ from pinpoint_fg.io.recording.schema import FrameRecord, Recording
 from pinpoint_fg.likelihood import CONIC_DISTANCES
 from pinpoint_fg.noise import RESIDUAL_DIMS, NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
-from pinpoint_fg.observe import observe_frame
+from pinpoint_fg.observe import ignored_masks_note, observe_frame
 
 #: Relative eigenvalue floor applied to a singular sample covariance.
 COV_REL_FLOOR = 1e-12
@@ -81,18 +81,19 @@ def _in_front(recording: Recording, rec: FrameRecord, T: np.ndarray, obs: Observ
 
 
 def residuals_at_truth(recording: Recording, conic_frames: list | None = None, conic_distance: str = "sampson",
-                       skipped: list | None = None) -> dict[str, np.ndarray]:
+                       skipped: list | None = None, ignored_masks: list | None = None) -> dict[str, np.ndarray]:
     """Every residual type evaluated at the ground-truth poses of one run.
 
-    Returns ``{type: (n, d) array}`` for the types of :data:`pinpoint_fg.noise.RESIDUAL_DIMS`
-    (``n`` may be 0). Frames without ground truth contribute nothing. ``conic_frames``: a list that
-    receives each masked frame's ``(backbone pixels (M, 2), residuals (M,))``. ``conic_distance``: the backbone
-    residual's, "sampson" (:func:`factors.residuals.conic_residual`) or "geometric"
-    (:func:`factors.residuals.conic_geometric_residual`): calibrate with the one you track with. ``skipped``: a
-    list that receives ``(frame record, why)`` of each ground-truth frame left out by the tests of
-    :mod:`pinpoint_fg.eval.gt_scale`. Raises :class:`InputError` naming the run when no frame has ground truth,
-    naming the row when a frame's ground truth puts a needle point its image shows behind the camera, and naming
-    the first such row when those tests leave out every ground-truth frame that they could test.
+    Returns ``{type: (n, d) array}`` for the types of :data:`pinpoint_fg.noise.RESIDUAL_DIMS` (``n`` may be 0).
+    Frames without ground truth contribute nothing. ``conic_frames``: a list that receives each masked frame's
+    ``(backbone pixels (M, 2), residuals (M,))``. ``conic_distance``: the backbone residual's, "sampson"
+    (:func:`factors.residuals.conic_residual`) or "geometric" (:func:`factors.residuals.conic_geometric_residual`):
+    calibrate with the one you track with. ``skipped``: a list that receives ``(frame record, why)`` of each
+    ground-truth frame left out by the tests of :mod:`pinpoint_fg.eval.gt_scale`. ``ignored_masks``: a list that
+    receives ``(frame, why)`` of each ground-truth frame whose mask :func:`~pinpoint_fg.observe.observe_frame`
+    ignores (its backbone then adds nothing). Raises :class:`InputError` naming the run when no frame has ground
+    truth, naming the row when a frame's ground truth puts a needle point its image shows behind the camera, and
+    naming the first such row when those tests leave out every ground-truth frame that they could test.
     """
     if not recording.has_ground_truth:
         raise InputError("no frame has ground truth (gt_* columns): cannot calibrate", file=recording.root)
@@ -111,6 +112,8 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
             prev = None
             continue
         obs = observe_frame(recording, rec)
+        if obs.mask_ignored is not None and ignored_masks is not None:
+            ignored_masks.append((int(rec.frame), obs.mask_ignored))
         _in_front(recording, rec, T, obs)
         why, tested = gt_mismatch(recording, T, obs.tip_px, obs.tail_px, obs.backbone_px)
         if why is not None:
@@ -231,7 +234,7 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distan
     """Calibrated noise of every residual type from the ground truth of ``runs`` (module docstring); with
     ``fit_correlation`` also the backbone residuals' correlation length along the arc; ``conic_distance``: the
     backbone residual's (:func:`residuals_at_truth`). ``notes`` receives one line per run with ground-truth
-    frames left out by the ground-truth tests (the count and the first rows).
+    frames left out by the ground-truth tests (the count and the first rows), and one per run with masks ignored.
 
     Raises :class:`InputError` naming the run when a run cannot be read or has no ground truth, or is given twice.
     """
@@ -244,9 +247,13 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distan
     for run in runs:
         recording = read_recording(run)
         skipped: list[tuple[FrameRecord, GtMismatch]] = []
-        samples = residuals_at_truth(recording, conic_frames if fit_correlation else None, conic_distance, skipped)
+        ignored: list[tuple[int, str]] = []
+        samples = residuals_at_truth(recording, conic_frames if fit_correlation else None, conic_distance, skipped,
+                                     ignored)
         if skipped and notes is not None:
             notes.append(left_out_note(recording, skipped))
+        if ignored and notes is not None:
+            notes.append(ignored_masks_note(run, ignored, fate="calibrated"))
         for k, v in samples.items():
             pooled[k].append(v)
     noise = noise_from_residuals({k: np.concatenate(v, axis=0) for k, v in pooled.items()})

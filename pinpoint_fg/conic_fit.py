@@ -47,6 +47,8 @@ def line_distance_px(points_px: np.ndarray) -> np.ndarray:
     """``(M,)`` distance of pixels ``(M, 2)`` to their total-least-squares line (through their mean, along their
     principal direction), pixels."""
     p = np.asarray(points_px, dtype=float)
+    if p.shape[0] == 0:
+        return np.zeros(0)
     q = p - p.mean(axis=0)
     _, _, Vt = np.linalg.svd(q, full_matrices=False)
     return np.abs(q @ Vt[-1])

@@ -31,8 +31,8 @@ class Observation:
     cam_T_grasper: np.ndarray | None = None
     """Grasper pose from kinematics ``(4, 4)``: origin = grasp point, z axis = grasper axis."""
     mask_ignored: str | None = None
-    """Why the frame's mask, which held a wire, gave no backbone (:func:`pinpoint_fg.observe.centre_line_misfit`);
-    None otherwise. For the user's note only: trackers read ``backbone_px``."""
+    """Why the frame's mask is ignored (:func:`pinpoint_fg.observe.centre_line_misfit`: not one thin curve, or
+    mostly nonzero); None otherwise. For the user's note only: trackers read ``backbone_px``."""
 
     def __post_init__(self) -> None:
         for name, shape in (("tip_px", (2,)), ("tail_px", (2,)), ("cam_T_grasper", (4, 4))):

@@ -15,12 +15,13 @@ camera image) into at most ``max_points`` undistorted pixels on the needle's cen
    widths, is sacrificed with them.
 3. **Thin** the kept blobs to a one-pixel centre-line: Zhang-Suen thinning, each
    sub-iteration one whole-array step over the blobs' bounding box (the 8 neighbours are
-   packed into a byte and a 256-entry table says whether the pixel is deleted). A long blob
-   that thinning erodes to two pixels or none (Zhang-Suen does that to a wire two pixels wide
-   on a diagonal, a staircase: a far needle's whole mask) is thinned again at three times the
-   resolution, where it is a solid band, and its centre-line mapped back
-   (:data:`THIN_AGAIN_ELONGATION` tells it from a speck). On 6,349 simulated mask frames no
-   blob qualified: every centre-line pixel is as before.
+   packed into a byte and a 256-entry table says whether the pixel is deleted). A long, thin
+   blob whose skeleton thinning leaves far shorter than the blob (Zhang-Suen erodes a wire two
+   pixels wide on a diagonal, a staircase, to a pixel or two: a far needle's whole mask) is
+   thinned again at three times the resolution, where it is a solid band, and its centre-line
+   mapped back (:data:`THIN_AGAIN_ELONGATION` tells it from a speck, :data:`THIN_AGAIN_SHORT`
+   from a wire that thinning kept). On 6,349 simulated mask frames no blob qualified: every
+   centre-line pixel is as before.
 4. **Subsample** deterministically to at most ``max_points``: the skeleton pixels in raster
    order, taken at evenly spaced indices. A one-pixel 8-connected curve has about one pixel
    per row or per column along its dominant direction, so equal steps in raster order are
@@ -182,22 +183,26 @@ THICKNESS_QUANTILE = 0.9
 THIN_AGAIN_SCALE = 3
 
 
-#: A blob that thinning erodes to two pixels or none is thinned again when its bounding box's diagonal squared is
-#: at least this many times its area: a wire two pixels wide and ``L`` long scores about ``L / 2``; a round or
-#: elliptic speck (axes ratio r) about ``1.3 r``.
+#: A blob is thinned again when its bounding box's diagonal squared is at least this many times its area (a
+#: staircase two pixels wide and ``n`` rows long scores about ``n``; an upright elliptic speck of axes ratio ``r``
+#: ``(4 / pi) (r + 1 / r)``, 2.5 when round) ...
 THIN_AGAIN_ELONGATION = 16.0
+#: ... and its skeleton is shorter than this share of that diagonal: thinning eroded it (to a pixel or two, or to a
+#: few around a knob or a corner that broke the staircase), where a wire's skeleton runs its whole length.
+THIN_AGAIN_SHORT = 0.25
 
 
 def _thin_finer(skeleton: np.ndarray, blobs: np.ndarray) -> np.ndarray:
-    """``skeleton`` (0/1, ``(H, W)``) with the pixels of ``blobs`` (0/1, same shape; blobs its thinning erased)
+    """``skeleton`` (0/1, ``(H, W)``) with the pixels of ``blobs`` (0/1, same shape; blobs its thinning eroded)
     replaced by their thinning at :data:`THIN_AGAIN_SCALE` times the resolution, mapped back: a staircase two
     pixels wide, which Zhang-Suen erodes to a pixel or two, is a solid band there."""
     k = THIN_AGAIN_SCALE
-    finer = cv2.resize(blobs, None, fx=float(k), fy=float(k), interpolation=cv2.INTER_NEAREST)
+    x, y, w, h = cv2.boundingRect(blobs)  # only the erased blobs' box: the crop may hold a far wire too
+    finer = cv2.resize(blobs[y : y + h, x : x + w], None, fx=float(k), fy=float(k), interpolation=cv2.INTER_NEAREST)
     rk, ck = np.nonzero(zhang_suen_thin(finer))
     out = skeleton.copy()
     out[blobs != 0] = 0
-    out[rk // k, ck // k] = 1
+    out[y + rk // k, x + ck // k] = 1
     return out
 
 
@@ -218,6 +223,12 @@ class MaskBackbone:
     """The share of the image's pixels that are nonzero; above :data:`MAX_FOREGROUND_SHARE` the mask is not read
     (no points)."""
 
+    @property
+    def wire_px(self) -> float:
+        """The wire's width the gate of :func:`centre_line_misfit` scales with: the larger of ``width_px`` and
+        ``thickness_px``."""
+        return max(self.width_px, self.thickness_px)
+
 
 def mask_backbone(
     mask: np.ndarray,
@@ -236,8 +247,9 @@ def mask_backbone(
     dtype. The steps are in the module docstring: ``min_blob_px``, ``min_blob_fraction`` and
     ``min_elongation`` are step 2's thresholds, ``refine`` switches step 5 off (the raw
     Zhang-Suen pixels, up to half a pixel off). An empty mask (or one with only dropped
-    blobs) gives a ``(0, 2)`` array — "no dense observation". A mask that is not 2-D or not
-    the camera's size raises :class:`InputError` naming ``file``. Deterministic; ~3 ms for a
+    blobs) gives a ``(0, 2)`` array — "no dense observation"; so does one more than
+    :data:`MAX_FOREGROUND_SHARE` nonzero, which is not thinned (:attr:`MaskBackbone.foreground_share`). A mask
+    that is not 2-D or not the camera's size raises :class:`InputError` naming ``file``. Deterministic; ~3 ms for a
     1080x1080 mask with a 100 px-radius arc.
     """
     m = np.asarray(mask)
@@ -258,10 +270,11 @@ def mask_backbone(
         binary = (m != 0).astype(np.uint8)
     fg = cv2.findNonZero(binary)
     if fg is None:
-        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
+        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0, 0.0)
     share = fg.shape[0] / float(binary.size)
+    nothing = MaskBackbone(np.zeros((0, 2)), 0.0, 0.0, share)
     if share > MAX_FOREGROUND_SHARE:  # not thinned: ~1.4 s for an inverted 1080 x 1080 mask, and no wire in it
-        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0, share)
+        return nothing
     fg = fg.reshape(-1, 2)  # (N, 2) as (u, v)
     u_lo, v_lo = fg.min(axis=0)
     u_hi, v_hi = fg.max(axis=0)
@@ -275,7 +288,7 @@ def mask_backbone(
     keep[0] = False
     kept = fg[keep[fg_label]]
     if kept.shape[0] == 0:
-        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
+        return nothing
     c0, r0 = kept.min(axis=0)
     c1, r1 = kept.max(axis=0) + 1
     crop = np.zeros((r1 - r0, c1 - c0), dtype=np.uint8)
@@ -285,14 +298,14 @@ def mask_backbone(
     rows, cols = np.nonzero(skeleton)
     length = np.bincount(crop_labels[rows, cols], minlength=areas.size)
     # Zhang-Suen erodes a wire two pixels wide on a diagonal (a staircase) to a pixel or two; a speck erodes so
-    # too, and must stay a speck: only blobs as long (bounding-box diagonal) as a wire that thin are thinned again
+    # too, and must stay a speck: only long, thin blobs whose skeleton is much shorter are thinned again
     diag2 = stats[:, cv2.CC_STAT_WIDTH].astype(float) ** 2 + stats[:, cv2.CC_STAT_HEIGHT].astype(float) ** 2
-    vanished = keep & (length <= 2) & (diag2 >= THIN_AGAIN_ELONGATION * areas)
+    vanished = keep & (diag2 >= THIN_AGAIN_ELONGATION * areas) & (length * length < THIN_AGAIN_SHORT**2 * diag2)
     if vanished.any():
         skeleton = _thin_finer(skeleton, crop & vanished[crop_labels])
         rows, cols = np.nonzero(skeleton)
     if rows.size == 0:
-        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
+        return nothing
     # compact blobs (skeleton length^2 / area < min_elongation) are specks, not wire; the largest stays
     sk_label = crop_labels[rows, cols]
     length = np.bincount(sk_label, minlength=areas.size).astype(float)
@@ -314,19 +327,19 @@ def mask_backbone(
     )
     rows, cols = rows[inner], cols[inner]
     if rows.size == 0:
-        return MaskBackbone(np.zeros((0, 2)), 0.0, 0.0)
+        return nothing
     count = min(int(max_points), rows.size)
     idx = (np.arange(count) * rows.size) // count
     pts_rc = np.stack([rows[idx], cols[idx]], axis=1).astype(float)
     if refine:
         pts_rc = _refine_across(crop, pts_rc, width_px)
     pts_px = np.stack([pts_rc[:, 1] + c0, pts_rc[:, 0] + r0], axis=1)
-    return MaskBackbone(camera.undistort_px(pts_px), width_px, thickness_px)
+    return MaskBackbone(camera.undistort_px(pts_px), width_px, thickness_px, share)
 
 
-def backbone_from_mask(mask: np.ndarray, camera: PinholeCamera, **options: Any) -> np.ndarray:
-    """:func:`mask_backbone`'s centre-line pixels ``(M, 2)`` alone (``options``: its keyword arguments)."""
-    return mask_backbone(mask, camera, **options).points_px
+def backbone_from_mask(mask: np.ndarray, camera: PinholeCamera, *args: Any, **options: Any) -> np.ndarray:
+    """:func:`mask_backbone`'s centre-line pixels ``(M, 2)`` alone (``args``, ``options``: its other arguments)."""
+    return mask_backbone(mask, camera, *args, **options).points_px
 
 
 #: A mask's centre-line is no needle's when its median distance to its own best-fitting conic exceeds this many
@@ -352,7 +365,9 @@ def centre_line_misfit(backbone: MaskBackbone) -> str | None:
     fitted, 16 noise masks among normal-01's 49 (``scripts/mask_gate.py corrupt``) took SVN's mean error to
     2.61 mm / 31.8 deg and MAP's to 3.12 mm / 39.5 deg; with 14 ignored, 0.55 / 7.5 and 0.59 / 7.6. Not caught:
     noise sparse enough to leave a few specks (the other two, 1.5 and 2.3 px: a conic passes near five specks),
-    and a mask holding one straight line or one clean arc that is not the needle (an edge-on needle looks alike).
+    and a mask holding one straight line or one clean arc that is not the needle (an edge-on needle looks alike),
+    or an arc beside an object thicker than their misfit (the thickest wire blob sets the width: an instrument's
+    shaft 20 px wide beside a 6 px needle passes).
     Ignored although a needle: a wire split lengthwise into two rims (a missed specular line: two curves about a
     quarter of the wire apart) and a needle whose mask includes a long, wavy suture thread. A thread in every mask
     defeats every tracker with the gate or without (README, *Bad input*): the least-squares conic runs between
@@ -364,7 +379,7 @@ def centre_line_misfit(backbone: MaskBackbone) -> str | None:
     if backbone.points_px.shape[0] < 5:
         return None
     misfit = conic_misfit_px(backbone.points_px)
-    wire_px = max(backbone.width_px, backbone.thickness_px)
+    wire_px = backbone.wire_px
     gate = max(MISFIT_WIDTHS * wire_px, MISFIT_MIN_PX)
     if misfit <= gate:
         return None

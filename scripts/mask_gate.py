@@ -39,7 +39,7 @@ def measure(runs: list[Path]) -> None:
             mb = mask_backbone(rec.load_mask(f), rec.info.camera)
             if mb.points_px.shape[0] == 0:
                 continue
-            wire = max(mb.width_px, mb.thickness_px)
+            wire = mb.wire_px
             rows.append((run.name, f.frame, wire, conic_misfit_px(mb.points_px), centre_line_misfit(mb)))
     w, mis = np.array([r[2] for r in rows]), np.array([r[3] for r in rows])
     q = [0, 1, 50, 99, 99.9, 100]

@@ -233,7 +233,7 @@ def test_points_the_lens_model_cannot_undistort_are_a_located_error(tmp_path, mo
 
 
 def _gate(mb: MaskBackbone) -> float:
-    return max(MISFIT_WIDTHS * mb.width_px, MISFIT_MIN_PX)
+    return max(MISFIT_WIDTHS * mb.wire_px, MISFIT_MIN_PX)
 
 
 def test_needle_masks_pass_the_centre_line_gate_with_margin() -> None:
@@ -363,4 +363,66 @@ def test_a_mask_mostly_nonzero_is_not_read(kind: str) -> None:
     assert mb.points_px.shape == (0, 2) and mb.foreground_share > 0.45
     why = centre_line_misfit(mb)
     assert why is not None and "inverted mask" in why
-    assert centre_line_misfit(mask_backbone(needle, CAM)) is None and mask_backbone(needle, CAM).foreground_share < 0.01
+    kept = mask_backbone(needle, CAM)
+    assert centre_line_misfit(kept) is None and 0.0 < kept.foreground_share < 0.01
+
+
+def _staircase(rows: int) -> np.ndarray:
+    """A wire two pixels wide on the diagonal: pixel pairs (i, i), (i, i + 1)."""
+    stairs = np.zeros((rows, rows + 1), np.uint8)
+    idx = np.arange(rows)
+    stairs[idx, idx] = stairs[idx, idx + 1] = 255
+    return stairs
+
+
+def test_a_staircase_beside_a_needle_and_with_a_knob_keeps_its_centre_line() -> None:
+    """The staircase is thinned again inside its own box (the crop also holds a far arc: its box's offset must
+    map back), also when a knob at its end leaves thinning a few pixels rather than two."""
+    cam = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080, (0.0, 0.0, 0.0, 0.0, 0.0))
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.ellipse(mask, (540, 300), (300, 200), 0, 200, 340, 255, 4)
+    mask[600:900, 500:801] = _staircase(300)
+    mask[895:905, 795:805] = 255  # a knob at the staircase's end
+    pts = backbone_from_mask(mask, cam, max_points=100000)
+    on_stairs = (pts[:, 1] > 590) & (pts[:, 1] < 910)
+    assert on_stairs.sum() > 250  # the staircase's rows, not the knob's few pixels
+    s = pts[on_stairs]
+    assert np.abs((s[:, 0] - 500.0) - (s[:, 1] - 600.0) - 0.5)[s[:, 1] < 890].max() < 1.0
+    assert (~on_stairs).sum() > 200  # the arc is still there
+
+
+def test_a_compact_speck_is_not_thinned_again() -> None:
+    """A round speck big enough to be kept (area >= a tenth of the needle's): thinning erodes it to a pixel or
+    two and it stays a speck, dropped as not elongated; the needle's centre-line is the same."""
+    rng = np.random.default_rng(8)
+    needle = _render_mask(rng, _random_pose(rng), antialiased=False, blobs=0)
+    speck = needle.copy()
+    arc_px = np.argwhere(needle > 0)
+    far = np.array([60, 60]) if np.linalg.norm(arc_px - [60, 60], axis=1).min() > 80 else np.array([1000, 60])
+    cv2.circle(speck, (int(far[1]), int(far[0])), 12, 255, -1)
+    disk = (speck[far[0] - 20 : far[0] + 20, far[1] - 20 : far[1] + 20] > 0).astype(np.uint8)
+    assert zhang_suen_thin(disk).sum() <= 2
+    with_speck, without = backbone_from_mask(speck, CAM), backbone_from_mask(needle, CAM)
+    assert with_speck.shape == without.shape  # no pixel of the speck
+    # the speck enlarges the crop, whose border the refinement's blurred structure tensor sees: 0.058 px here, as
+    # before the second thinning existed
+    np.testing.assert_allclose(with_speck, without, atol=0.1)
+
+
+def test_a_compact_staircase_speck_stays_a_speck() -> None:
+    """A V of two short staircases (40 px in a 10 x 21 box): thinning erodes it to a few pixels, as it does a
+    long staircase, but its box is too short for a wire that thin (THIN_AGAIN_ELONGATION), so it is not thinned
+    again (thinned at 3x it would be a 20-pixel skeleton, kept as wire)."""
+    rng = np.random.default_rng(8)
+    needle = _render_mask(rng, _random_pose(rng), antialiased=False, blobs=0)
+    v = np.zeros((10, 22), np.uint8)
+    for i in range(10):
+        v[i, i] = v[i, i + 1] = v[i, 20 - i] = v[i, 21 - i] = 255
+    assert zhang_suen_thin(v).sum() <= 4 and (v > 0).sum() >= 40
+    arc = np.argwhere(needle > 0)
+    r0, c0 = (40, 40) if np.linalg.norm(arc - [45, 50], axis=1).min() > 80 else (1020, 40)
+    speck = needle.copy()
+    speck[r0 : r0 + 10, c0 : c0 + 22] = v
+    pts = backbone_from_mask(speck, CAM, max_points=100000)
+    near = np.linalg.norm(CAM.distort_px(pts) - [c0 + 11, r0 + 5], axis=1) < 20
+    assert not near.any()

@@ -112,8 +112,6 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
             prev = None
             continue
         obs = observe_frame(recording, rec)
-        if obs.mask_ignored is not None and ignored_masks is not None:
-            ignored_masks.append((int(rec.frame), obs.mask_ignored))
         _in_front(recording, rec, T, obs)
         why, tested = gt_mismatch(recording, T, obs.tip_px, obs.tail_px, obs.backbone_px)
         if why is not None:
@@ -121,6 +119,8 @@ def residuals_at_truth(recording: Recording, conic_frames: list | None = None, c
             prev = None  # nor the motion residuals that would pair it with its neighbours
             continue
         passed += tested
+        if obs.mask_ignored is not None and ignored_masks is not None:  # a frame calibrated without its mask
+            ignored_masks.append((int(rec.frame), obs.mask_ignored))
         if obs.tip_px is not None:
             out["tip"].append(res.keypoint_residual(T, K, nd.tip_m, obs.tip_px)[0])
         if obs.tail_px is not None:

@@ -293,23 +293,25 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
                                                    smoothed=config.window > 1,
                                                    recording_fingerprint=recording_fingerprint(recording)) as writer:
         ignored: list[tuple[int, str]] = []
-        for obs in tqdm(offload.observations(recording, frames), desc=f"{method} {recording.info.name}",
-                        unit="frame", total=len(frames), disable=not show):
-            if obs.mask_ignored is not None:
-                ignored.append((obs.frame, obs.mask_ignored))
-            try:
-                offload.submit(tracker.step(obs))
-                for row in offload.ready():
-                    writer.write(scaled(row))
-            except (RuntimeError, ValueError) as exc:
-                if isinstance(exc, InputError) or not _numerical_failure(exc):
-                    raise
-                raise InputError(f"frame {obs.frame}: {method} failed on this input ({_first_line(exc)}); the frames "
-                                 f"before it are in {out}", file=Path(run) / "frames.csv") from exc
-        for row in offload.ready(wait=True):
-            writer.write(scaled(row))
-        if ignored:
-            print(ignored_masks_note(Path(run), ignored), file=sys.stderr)
+        try:
+            for obs in tqdm(offload.observations(recording, frames), desc=f"{method} {recording.info.name}",
+                            unit="frame", total=len(frames), disable=not show):
+                if obs.mask_ignored is not None:
+                    ignored.append((obs.frame, obs.mask_ignored))
+                try:
+                    offload.submit(tracker.step(obs))
+                    for row in offload.ready():
+                        writer.write(scaled(row))
+                except (RuntimeError, ValueError) as exc:
+                    if isinstance(exc, InputError) or not _numerical_failure(exc):
+                        raise
+                    raise InputError(f"frame {obs.frame}: {method} failed on this input ({_first_line(exc)}); the "
+                                     f"frames before it are in {out}", file=Path(run) / "frames.csv") from exc
+            for row in offload.ready(wait=True):
+                writer.write(scaled(row))
+        finally:  # also when a later frame stops the run: the frames written were tracked without those masks
+            if ignored:
+                print(ignored_masks_note(Path(run), ignored), file=sys.stderr)
         final = getattr(tracker, "final_smoothed", None)
         if config.window > 1 and callable(final):
             for f, t, T in final():

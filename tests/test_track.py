@@ -207,3 +207,31 @@ def test_track_and_validate_note_the_ignored_masks(run: Path, tmp_path: Path, ca
     assert f"frame {first['frame']}, {first['mask']}: 50% of its pixels are nonzero" in notes[0]
     assert main(["validate", str(noisy)]) == 0  # says the same before tracking
     assert [line for line in capsys.readouterr().err.splitlines() if "the masks of" in line] == notes
+
+
+def test_the_ignored_masks_note_survives_a_run_stopped_later(run: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """A frame that stops the run after a mask was ignored: the note still tells that the frames written were
+    tracked without it."""
+    from pinpoint_fg.errors import InputError
+    from pinpoint_fg.trackers.map import MapTracker
+
+    noisy = tmp_path / "noisy"
+    shutil.copytree(run, noisy)
+    with open(run / "frames.csv", newline="") as fh:
+        first = next(r for r in csv.DictReader(fh) if r["mask"])
+    shape = cv2.imread(str(run / first["mask"]), cv2.IMREAD_UNCHANGED).shape
+    cv2.imwrite(str(noisy / first["mask"]), ((np.random.default_rng(1).random(shape) < 0.5) * 255).astype(np.uint8))
+    step = MapTracker.step
+
+    def failing(self, obs):  # noqa: ANN001, ANN202
+        if obs.frame >= int(first["frame"]) + 4:
+            raise InputError("stopped for the test", file=noisy / "frames.csv")
+        return step(self, obs)
+
+    monkeypatch.setattr(MapTracker, "step", failing)
+    with pytest.raises(InputError, match="stopped for the test"):
+        track_recording(noisy, "map", tmp_path / "out", progress=False, max_frames=12)
+    notes = [line for line in capsys.readouterr().err.splitlines() if "the masks of" in line]
+    assert len(notes) == 1 and f"frame {first['frame']}, {first['mask']}" in notes[0]

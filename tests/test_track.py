@@ -193,13 +193,19 @@ def test_masks_of_noise_are_ignored_as_if_absent(run: Path, tmp_path: Path, caps
         tmp_path / "out_bare" / "estimates.csv")
 
 
-def test_track_and_validate_note_the_ignored_masks(run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    noisy = tmp_path / "noisy"
+def _first_mask_noise(run: Path, noisy: Path) -> tuple[Path, dict[str, str]]:
+    """A copy of ``run`` at ``noisy`` whose first mask is half noise (more than a quarter nonzero: ignored), and
+    that frame's ``frames.csv`` row."""
     shutil.copytree(run, noisy)
     with open(run / "frames.csv", newline="") as fh:
         first = next(r for r in csv.DictReader(fh) if r["mask"])
     shape = cv2.imread(str(run / first["mask"]), cv2.IMREAD_UNCHANGED).shape
     cv2.imwrite(str(noisy / first["mask"]), ((np.random.default_rng(1).random(shape) < 0.5) * 255).astype(np.uint8))
+    return noisy, first
+
+
+def test_track_and_validate_note_the_ignored_masks(run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    noisy, first = _first_mask_noise(run, tmp_path / "noisy")
     track_recording(noisy, "map", tmp_path / "out", progress=False, max_frames=4)
     notes = [line for line in capsys.readouterr().err.splitlines() if "the masks of" in line]
     assert len(notes) == 1
@@ -217,12 +223,7 @@ def test_the_ignored_masks_note_survives_a_run_stopped_later(run: Path, tmp_path
     from pinpoint_fg.errors import InputError
     from pinpoint_fg.trackers.map import MapTracker
 
-    noisy = tmp_path / "noisy"
-    shutil.copytree(run, noisy)
-    with open(run / "frames.csv", newline="") as fh:
-        first = next(r for r in csv.DictReader(fh) if r["mask"])
-    shape = cv2.imread(str(run / first["mask"]), cv2.IMREAD_UNCHANGED).shape
-    cv2.imwrite(str(noisy / first["mask"]), ((np.random.default_rng(1).random(shape) < 0.5) * 255).astype(np.uint8))
+    noisy, first = _first_mask_noise(run, tmp_path / "noisy")
     step = MapTracker.step
 
     def failing(self, obs):  # noqa: ANN001, ANN202

@@ -21,7 +21,10 @@ camera image) into at most ``max_points`` undistorted pixels on the needle's cen
    thinned again at three times the resolution, where it is a solid band, and its centre-line
    mapped back (:data:`THIN_AGAIN_ELONGATION` tells it from a speck, :data:`THIN_AGAIN_SHORT`
    from a wire that thinning kept). On 6,349 simulated mask frames no blob qualified: every
-   centre-line pixel is as before.
+   centre-line pixel is as before. Such a staircase also loses a pixel at each end per
+   iteration, so thinning stops after ``ceil(d) +`` :data:`ZS_SPARE_ITERATIONS` iterations
+   (``d``: the crop's largest distance to the background) and a long, thin blob still thinning
+   then takes the finer pass at once.
 4. **Subsample** deterministically to at most ``max_points``: the skeleton pixels in raster
    order, taken at evenly spaced indices. A one-pixel 8-connected curve has about one pixel
    per row or per column along its dominant direction, so equal steps in raster order are
@@ -106,17 +109,27 @@ def zhang_suen_thin(binary: np.ndarray) -> np.ndarray:
     b = np.asarray(binary)
     if b.ndim != 2:
         raise ValueError(f"binary must be 2-D, got shape {b.shape}")
-    C = (b != 0).astype(np.uint8)
-    while True:
-        changed = False
+    return _zhang_suen((b != 0).astype(np.uint8), None)[0]
+
+
+def _zhang_suen(C: np.ndarray, max_iterations: int | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`zhang_suen_thin` of the 0/1 uint8 image ``C`` (thinned in place), stopped after ``max_iterations``
+    (None: none). Returns the image and, when stopped with pixels still being deleted, the 0/1 image of the last
+    iteration's deletions (else None). The state is the image alone: thinning the returned image goes on
+    exactly where this stopped."""
+    iteration = 0
+    while max_iterations is None or iteration < max_iterations:
+        iteration += 1
+        deleted = None
         for table in (_ZS_FIRST, _ZS_SECOND):
             code = cv2.filter2D(C, cv2.CV_8U, _ZS_KERNEL, borderType=cv2.BORDER_CONSTANT)
             delete = cv2.bitwise_and(cv2.LUT(code, table), C)
             if cv2.countNonZero(delete):
                 cv2.subtract(C, delete, dst=C)
-                changed = True
-        if not changed:
-            return C
+                deleted = delete if deleted is None else cv2.bitwise_or(deleted, delete)
+        if deleted is None:
+            return C, None
+    return C, deleted
 
 
 def _refine_across(
@@ -190,6 +203,14 @@ THIN_AGAIN_ELONGATION = 16.0
 #: ... and its skeleton is shorter than this share of that diagonal: thinning eroded it (to a pixel or two, or to a
 #: few around a knob or a corner that broke the staircase), where a wire's skeleton runs its whole length.
 THIN_AGAIN_SHORT = 0.25
+
+
+#: Zhang-Suen gets ``ceil(d) +`` this many iterations at full resolution, ``d`` the crop's largest distance to the
+#: background (a band ``2 d`` wide thins in about ``d``). On 6,349 simulated mask frames it needed at most
+#: ``ceil(d) + 20``; a staircase two pixels wide loses a pixel at each end per iteration instead, so it takes half
+#: its length (0.83 s for 800 rows). A long, thin blob still thinning then is thinned at :data:`THIN_AGAIN_SCALE`
+#: times the resolution, where its erosion would have sent it anyway; any other blob still thinning is thinned on.
+ZS_SPARE_ITERATIONS = 32
 
 
 def _thin_finer(skeleton: np.ndarray, blobs: np.ndarray) -> np.ndarray:
@@ -293,14 +314,23 @@ def mask_backbone(
     c1, r1 = kept.max(axis=0) + 1
     crop = np.zeros((r1 - r0, c1 - c0), dtype=np.uint8)
     crop[kept[:, 1] - r0, kept[:, 0] - c0] = 1
-    skeleton = zhang_suen_thin(crop)
+    padded = cv2.copyMakeBorder(crop, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)  # outside the crop is background
+    dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     crop_labels = labels[r0 - v_lo : r1 - v_lo, c0 - u_lo : c1 - u_lo]
+    diag2 = stats[:, cv2.CC_STAT_WIDTH].astype(float) ** 2 + stats[:, cv2.CC_STAT_HEIGHT].astype(float) ** 2
+    thin_blob = keep & (diag2 >= THIN_AGAIN_ELONGATION * areas)
+    skeleton, thinning = _zhang_suen(crop.copy(), int(np.ceil(float(dist.max()))) + ZS_SPARE_ITERATIONS)
+    unsettled = np.zeros(areas.size, dtype=bool)
+    if thinning is not None:
+        unsettled[crop_labels[thinning != 0]] = True
+        if (unsettled & ~thin_blob).any():  # not the staircase's erosion: thinned to the end, as always
+            skeleton, _ = _zhang_suen(skeleton, None)
+            unsettled[:] = False
     rows, cols = np.nonzero(skeleton)
     length = np.bincount(crop_labels[rows, cols], minlength=areas.size)
     # Zhang-Suen erodes a wire two pixels wide on a diagonal (a staircase) to a pixel or two; a speck erodes so
     # too, and must stay a speck: only long, thin blobs whose skeleton is much shorter are thinned again
-    diag2 = stats[:, cv2.CC_STAT_WIDTH].astype(float) ** 2 + stats[:, cv2.CC_STAT_HEIGHT].astype(float) ** 2
-    vanished = keep & (diag2 >= THIN_AGAIN_ELONGATION * areas) & (length * length < THIN_AGAIN_SHORT**2 * diag2)
+    vanished = thin_blob & ((length * length < THIN_AGAIN_SHORT**2 * diag2) | unsettled)
     if vanished.any():
         skeleton = _thin_finer(skeleton, crop & vanished[crop_labels])
         rows, cols = np.nonzero(skeleton)
@@ -316,8 +346,6 @@ def mask_backbone(
     width_px = float(areas[wire].sum()) / float(rows.size)
     # the skeleton's side branches into a rough boundary lengthen it and shrink width_px; the distance to the
     # background on the centre-line does not shrink: 2 d - 1 is the width of a band whose middle pixel is d away
-    padded = cv2.copyMakeBorder(crop, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)  # outside the crop is background
-    dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     thickness_px = max(2.0 * float(np.quantile(dist[rows + 1, cols + 1], THICKNESS_QUANTILE)) - 1.0, 0.0)
     # where the image frame cuts the wire the centre-line bends towards the cut: drop that stretch
     border = int(np.ceil(width_px))

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+import pinpoint_fg.observe as observe_module
 from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import so3_exp
 from pinpoint_fg.conic_fit import conic_misfit_px
@@ -20,6 +21,7 @@ from pinpoint_fg.io.recording.writer import write_recording
 from pinpoint_fg.observe import (
     MISFIT_MIN_PX,
     MISFIT_WIDTHS,
+    ZS_SPARE_ITERATIONS,
     MaskBackbone,
     backbone_from_mask,
     centre_line_misfit,
@@ -389,6 +391,76 @@ def test_a_staircase_beside_a_needle_and_with_a_knob_keeps_its_centre_line() -> 
     s = pts[on_stairs]
     assert np.abs((s[:, 0] - 500.0) - (s[:, 1] - 600.0) - 0.5)[s[:, 1] < 890].max() < 1.0
     assert (~on_stairs).sum() > 200  # the arc is still there
+
+
+def _thinning_calls(monkeypatch) -> list[tuple[int | None, bool, tuple[int, int]]]:
+    """Record every Zhang-Suen run of :func:`mask_backbone`: (its iteration cap, stopped while still thinning, the
+    image's shape)."""
+    calls: list[tuple[int | None, bool, tuple[int, int]]] = []
+    real = observe_module._zhang_suen
+
+    def recorded(C: np.ndarray, max_iterations: int | None):
+        out = real(C, max_iterations)
+        calls.append((max_iterations, out[1] is not None, C.shape))
+        return out
+
+    monkeypatch.setattr(observe_module, "_zhang_suen", recorded)
+    return calls
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_thinning_stopped_and_resumed_is_thinning_in_one_go(seed: int) -> None:
+    """Zhang-Suen's state is the image alone: stopped after k iterations and thinned on, it gives the one-go
+    skeleton; the last iteration's deletions are reported exactly when it stopped early."""
+    rng = np.random.default_rng(seed)
+    image = cv2.GaussianBlur((rng.random((120, 160)) < 0.5).astype(np.float32), (0, 0), 3.0) > 0.5
+    image = image.astype(np.uint8)
+    whole = zhang_suen_thin(image)
+    for k in (1, 2, 3):
+        part, deleted = observe_module._zhang_suen(image.copy(), k)
+        resumed, rest = observe_module._zhang_suen(part.copy(), None)
+        assert rest is None
+        np.testing.assert_array_equal(resumed, whole)
+        assert deleted is not None or np.array_equal(part, whole)  # not reported done while not done
+
+
+@pytest.mark.parametrize("rows", [300, 800])
+def test_a_long_staircase_is_not_eroded_pixel_by_pixel(rows: int, monkeypatch) -> None:
+    """A staircase two pixels wide loses a pixel at each end per Zhang-Suen iteration (half its length of
+    iterations, 0.83 s for 800 rows). Its thinning stops at ceil(d) + ZS_SPARE_ITERATIONS and the staircase, still
+    thinning, goes straight to the finer pass its erosion would have reached: the same centre-line as thinning it
+    to the end."""
+    cam = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080, (0.0, 0.0, 0.0, 0.0, 0.0))
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    mask[100 : 100 + rows, 100 : 101 + rows] = _staircase(rows)
+    calls = _thinning_calls(monkeypatch)
+    capped = mask_backbone(mask, cam, max_points=100000)
+    finer = (None, False, (3 * rows, 3 * (rows + 1)))  # the second pass, at 3x
+    # d = 1: stopped while the ends were still being eroded
+    assert calls == [(1 + ZS_SPARE_ITERATIONS, True, (rows, rows + 1)), finer]
+    monkeypatch.setattr(observe_module, "ZS_SPARE_ITERATIONS", 10**6)
+    to_the_end = mask_backbone(mask, cam, max_points=100000)
+    assert calls[2:] == [(1 + 10**6, False, (rows, rows + 1)), finer]
+    np.testing.assert_array_equal(capped.points_px, to_the_end.points_px)
+    assert (capped.width_px, capped.thickness_px) == (to_the_end.width_px, to_the_end.thickness_px)
+    s = capped.points_px
+    assert np.ptp(s[:, 1]) > rows - 20 and np.abs((s[:, 0] - 100.0) - (s[:, 1] - 100.0) - 0.5).max() < 1.0
+
+
+def test_a_compact_blob_still_thinning_at_the_cap_is_thinned_to_the_end(monkeypatch) -> None:
+    """A staircase fused to a square block is no long, thin blob (THIN_AGAIN_ELONGATION): still thinning at the
+    cap, it is thinned on to the end, exactly as without the cap."""
+    cam = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080, (0.0, 0.0, 0.0, 0.0, 0.0))
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    mask[100:400, 100:401] = _staircase(300)
+    mask[380:560, 380:560] = 255
+    calls = _thinning_calls(monkeypatch)
+    capped = mask_backbone(mask, cam, max_points=100000)
+    assert [c[:2] for c in calls] == [(calls[0][0], True), (None, False)]  # stopped at the cap, then thinned on
+    assert calls[0][2] == calls[1][2] == (460, 460)  # both at full resolution; no finer pass
+    monkeypatch.setattr(observe_module, "ZS_SPARE_ITERATIONS", 10**6)
+    to_the_end = mask_backbone(mask, cam, max_points=100000)
+    np.testing.assert_array_equal(capped.points_px, to_the_end.points_px)
 
 
 def test_a_compact_speck_is_not_thinned_again() -> None:

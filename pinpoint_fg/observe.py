@@ -209,7 +209,8 @@ THIN_AGAIN_SHORT = 0.25
 #: background (a band ``2 d`` wide thins in about ``d``). On 6,349 simulated mask frames it needed at most
 #: ``ceil(d) + 20``; a staircase two pixels wide loses a pixel at each end per iteration instead, so it takes half
 #: its length (0.83 s for 800 rows). A long, thin blob still thinning then is thinned at :data:`THIN_AGAIN_SCALE`
-#: times the resolution, where its erosion would have sent it anyway; any other blob still thinning is thinned on.
+#: times the resolution, where a staircase's erosion would have sent it anyway (a blob that thinning would not have
+#: eroded is thinned at 3x too, its centre-line mapped back); any other blob still thinning is thinned on.
 ZS_SPARE_ITERATIONS = 32
 
 

@@ -9,9 +9,14 @@ loss       ``rho(d)``                                            IRLS weight ``w
 none       ``d^2 / 2``                                           ``1``
 huber      ``d^2 / 2`` if ``d <= k`` else ``k d - k^2 / 2``       ``min(1, k / d)``
 cauchy     ``k^2 / 2 log(1 + d^2 / k^2)``                        ``k^2 / (k^2 + d^2)``
+gm         ``k^2 d^2 / (2 (k^2 + d^2))`` (Geman-McClure)          ``k^4 / (k^2 + d^2)^2``
 =========  ====================================================  =============================
 
-These are GTSAM's ``noiseModel.mEstimator.Huber`` / ``Cauchy`` definitions (GTSAM 4.3; pinned by
+Geman-McClure redescends: its cost is bounded by ``k^2 / 2``, so a far outlier costs a constant and pulls
+nothing, where Huber's and Cauchy's cost keeps growing (linearly, logarithmically) and a crowd of outliers (a
+suture thread's pixels in the backbone) can outweigh the wire.
+
+These are GTSAM's ``noiseModel.mEstimator.Huber`` / ``Cauchy`` / ``GemanMcClure`` definitions (GTSAM 4.3; pinned by
 ``tests/test_factors_robust.py`` against the mEstimator objects' ``loss``/``weight`` to 1e-12).
 :meth:`RobustLoss.gtsam_model` wraps a base noise model in ``gtsam.noiseModel.Robust`` so a factor's
 ``error()`` is ``rho(|e|)`` and its ``linearize()`` scales the whitened ``A`` and ``b`` by ``sqrt(w)``
@@ -38,7 +43,7 @@ import gtsam
 import numpy as np
 
 #: Loss names accepted by :class:`RobustLoss`.
-LOSS_KINDS = ("none", "huber", "cauchy")
+LOSS_KINDS = ("none", "huber", "cauchy", "gm")
 #: Largest accepted threshold ``k`` (standard deviations). Beyond it every loss is the Gaussian for any residual
 #: a frame can hold, and ``k^2`` in the formulas would overflow to inf (``1e308`` gave NaN poses).
 MAX_K = 1e6
@@ -49,7 +54,7 @@ class RobustLoss:
     """One residual block's loss: ``kind`` in :data:`LOSS_KINDS` and its threshold ``k``."""
 
     kind: str = "none"
-    """``none`` (Gaussian), ``huber`` or ``cauchy``."""
+    """``none`` (Gaussian), ``huber``, ``cauchy`` or ``gm`` (Geman-McClure)."""
     k: float = 1.0
     """Threshold in whitened units (standard deviations); unused by ``none``."""
 
@@ -66,7 +71,7 @@ class RobustLoss:
 
     @classmethod
     def parse(cls, text: str) -> RobustLoss:
-        """``none``, ``huber``, ``huber:1.345``, ``cauchy:2`` (default k: 1.345 Huber, 1.0 Cauchy)."""
+        """``none``, ``huber``, ``huber:1.345``, ``cauchy:2``, ``gm:3`` (default k: 1.345 Huber, 1.0 the others)."""
         if not isinstance(text, str):  # None or a number was an AttributeError naming nothing
             raise ValueError(f"a robust loss is a string such as 'huber:1.345' or 'none', got {text!r}")
         kind, _, k = text.strip().partition(":")
@@ -95,6 +100,8 @@ class RobustLoss:
             return np.where(d <= k, 0.5 * d * d, k * d - 0.5 * k * k)
         if self.kind == "cauchy":
             return 0.5 * k * k * np.log1p((d / k) ** 2)
+        if self.kind == "gm":
+            return 0.5 * k * k * d * d / (k * k + d * d)
         return 0.5 * d * d
 
     def weight(self, d: np.ndarray) -> np.ndarray:
@@ -105,6 +112,8 @@ class RobustLoss:
             return np.where(d <= k, 1.0, k / np.where(d <= k, 1.0, d))
         if self.kind == "cauchy":
             return k * k / (k * k + d * d)
+        if self.kind == "gm":
+            return (k * k / (k * k + d * d)) ** 2
         return np.ones_like(d)
 
     def gtsam_estimator(self) -> gtsam.noiseModel.mEstimator.Base | None:
@@ -113,6 +122,8 @@ class RobustLoss:
             return gtsam.noiseModel.mEstimator.Huber.Create(self.k)
         if self.kind == "cauchy":
             return gtsam.noiseModel.mEstimator.Cauchy.Create(self.k)
+        if self.kind == "gm":
+            return gtsam.noiseModel.mEstimator.GemanMcClure.Create(self.k)
         return None
 
     def gtsam_model(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:

@@ -422,7 +422,7 @@ def _load_robust(rob: object, path: Path) -> dict[str, RobustLoss]:
             continue
         where = f'key "robust.{k}"'
         if not isinstance(entry, dict) or not isinstance(entry.get("loss"), str):
-            raise InputError(f'{where} must be an object with "loss" (none, huber, cauchy) and optionally "k"',
+            raise InputError(f'{where} must be an object with "loss" (none, huber, cauchy, gm) and optionally "k"',
                              file=path)
         kind = entry["loss"]
         default_k = 1.345 if kind == "huber" else 1.0

@@ -1,10 +1,13 @@
 """SVN vs single-mode MAP vs MHT on every run of a directory: mean errors, truth kept, modes verdict (issue 9).
 
-Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR [--methods svn map mht] [--runs GLOB ...]``
+Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR [--methods svn map mht] [--runs GLOB ...]
+[--robust SPEC]``
 (e.g. the runs of ``pinpoint-fg simulate`` for each scenario with another ``--seed`` than the benchmark's;
 ``--runs 'snapshots-0[1-8]'`` keeps the runs whose names match a glob; ``--methods svn`` scores one method, e.g. to
-compare two trees by running this from each with ``PYTHONPATH`` set to it). Each run is tracked as ``track`` would (the
-recording's ``suggested_disable``, seed 0), one method after the other, in this process; "kept" = some particle
+compare two trees by running this from each with ``PYTHONPATH`` set to it; ``--robust`` sets the robust losses as
+``track --robust`` does, e.g. ``conic=gm:3,grasp-perpendicular=huber:1.345`` against the default). Each run is
+tracked as ``track`` would (the recording's ``suggested_disable``, seed 0), one method after the other, in this
+process; "kept" = some particle
 within 2 mm / 10 deg of the truth, "bimodal" = the modes verdict (second mode >= 0.1). Last, per scenario (a run's
 name without its ``-SEED`` suffix, as ``pinpoint-fg simulate`` names runs) and method, the means of those columns
 over the scenario's runs.
@@ -16,14 +19,18 @@ import argparse
 import fnmatch
 from pathlib import Path
 
+from factors.robust import RobustLoss
 from pinpoint_fg.experiments.compare import score_run
 from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.noise import NoiseConfig, parse_robust_spec
 from pinpoint_fg.track import make_tracker, suggested_disable, tracker_config
 
 METHODS = ("svn", "map", "mht")
 
 
-def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ...] = ("*",)) -> None:
+def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ...] = ("*",),
+         robust: dict[str, RobustLoss] | None = None) -> None:
+    noise = None if robust is None else NoiseConfig().with_robust(robust)
     header = f"{'method':<6} {'trans mm':>8} {'rot deg':>8} {'kept':>6} {'bimodal':>8}"
     print(f"{'run':<16} {header}")
     scores: dict[str, dict[str, list]] = {}
@@ -32,7 +39,7 @@ def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ..
         rec = read_recording(run)
         scenario = run.name.rsplit("-", 1)[0] if run.name.rsplit("-", 1)[-1].isdigit() else run.name
         for method in methods:
-            config = tracker_config(rec, method, disable=suggested_disable(rec), seed=0)
+            config = tracker_config(rec, method, noise=noise, disable=suggested_disable(rec), seed=0)
             sc = score_run(rec, make_tracker(method, config))
             scores.setdefault(scenario, {}).setdefault(method, []).append(sc)
             print(f"{run.name:<16} {method:<6} {sc.trans_mm:8.2f} {sc.rot_deg:8.1f} {sc.kept:6.1%} {sc.bimodal:8.1%}",
@@ -51,5 +58,6 @@ if __name__ == "__main__":
     ap.add_argument("root", type=Path)
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     ap.add_argument("--runs", nargs="+", default=["*"], help="globs of run names to keep")
+    ap.add_argument("--robust", type=parse_robust_spec, default=None, help="robust losses, as track --robust")
     args = ap.parse_args()
-    main(args.root, tuple(args.methods), tuple(args.runs))
+    main(args.root, tuple(args.methods), tuple(args.runs), args.robust)

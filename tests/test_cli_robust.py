@@ -24,6 +24,10 @@ def test_track_robust_flag_and_mask_spurs(tmp_path: Path, capsys: pytest.Capture
         assert len(res.frame) == 9 and np.all(np.isfinite(res.cam_T_needle))
         settings = json.loads((out / "result.json").read_text())["settings"]
         assert settings["robust"] == "conic=huber:2,grasp-perpendicular=cauchy:1"
+    out = tmp_path / "gm"
+    assert main(["track", str(run), "--method", "mht", "--robust", "conic=GM:3", "--out", str(out)]) == 0
+    assert json.loads((out / "result.json").read_text())["settings"]["robust"] == "conic=gm:3"
+    assert np.all(np.isfinite(read_result(out).cam_T_needle))
     out = tmp_path / "off"
     assert main(["track", str(run), "--method", "map", "--robust", "none", "--out", str(out)]) == 0
     assert json.loads((out / "result.json").read_text())["settings"]["robust"] == "none"

@@ -16,7 +16,7 @@ CAM = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080)
 NEEDLE = NeedleModel()
 
 
-@pytest.mark.parametrize("kind", ["huber", "cauchy"])
+@pytest.mark.parametrize("kind", ["huber", "cauchy", "gm"])
 @pytest.mark.parametrize("k", [0.5, 1.0, 1.345, 3.0])
 def test_loss_and_weight_equal_gtsam_mestimator(kind: str, k: float) -> None:
     rl = RobustLoss(kind, k)
@@ -44,6 +44,7 @@ def test_none_is_the_gaussian_and_parse() -> None:
     assert RobustLoss.parse("huber") == RobustLoss("huber", 1.345)
     assert RobustLoss.parse("cauchy") == RobustLoss("cauchy", 1.0)
     assert RobustLoss.parse(" Cauchy:2.5 ") == RobustLoss("cauchy", 2.5)
+    assert RobustLoss.parse("gm") == RobustLoss("gm", 1.0) and RobustLoss.parse("GM:3") == RobustLoss("gm", 3.0)
     assert str(RobustLoss("huber", 2.0)) == "huber:2" and str(rl) == "none"
     for bad in ["tukey:1", "huber:abc", "huber:-1", "cauchy:0", "huber:nan", None, 1.345]:
         with pytest.raises(ValueError):
@@ -55,7 +56,7 @@ def test_robust_gtsam_factor_error_and_linearize_match_the_formula() -> None:
     T = se3_exp(np.r_[0.3, -0.2, 0.1, 0.002, -0.001, 0.045])
     z = np.r_[0.3, 0.9, 0.2]
     sigma = 0.05
-    for rl in (RobustLoss("huber", 1.345), RobustLoss("cauchy", 1.0)):
+    for rl in (RobustLoss("huber", 1.345), RobustLoss("cauchy", 1.0), RobustLoss("gm", 1.0)):
         plain = GraspPerpendicularFactor(0, NEEDLE.grasp_tangent, z, gtsam.noiseModel.Isotropic.Sigma(1, sigma))
         robust = GraspPerpendicularFactor(0, NEEDLE.grasp_tangent, z,
                                           rl.gtsam_model(gtsam.noiseModel.Isotropic.Sigma(1, sigma)))
@@ -116,3 +117,15 @@ def test_conic_pixel_factors_equal_conic_factor_and_share_one_evaluation(monkeyp
         conic_pixel_factors(0, CAM, NEEDLE.radius_m, pts, gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     with pytest.raises(ValueError, match="at least one"):
         conic_pixel_factors(0, CAM, NEEDLE.radius_m, np.zeros((0, 2)), gtsam.noiseModel.Isotropic.Sigma(1, 1.0))
+
+
+def test_geman_mcclure_bounds_what_a_far_outlier_costs() -> None:
+    """Geman-McClure redescends: its cost tends to k^2 / 2 and its pull ``rho'(d) = w d`` to 0 far out, where
+    Cauchy's cost grows as log d and its pull decays only as 1/d (so a crowd of far pixels still pulls)."""
+    gm, cauchy = RobustLoss("gm", 3.0), RobustLoss("cauchy", 3.0)
+    d = np.r_[30.0, 300.0, 3000.0]
+    assert np.all(gm.loss(d) < 0.5 * 9.0) and gm.loss(3000.0) > 0.5 * 9.0 * (1 - 1e-5)
+    assert np.all(np.diff(cauchy.loss(d)) > 4.0)  # + log(10) * k^2 / 2 per decade
+    pull_gm, pull_cauchy = gm.weight(d) * d, cauchy.weight(d) * d
+    np.testing.assert_allclose(pull_cauchy * d, 9.0, rtol=1e-2)  # ~ k^2 / d
+    np.testing.assert_allclose(pull_gm * d**3, 81.0, rtol=3e-2)  # ~ k^4 / d^3

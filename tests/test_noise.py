@@ -11,8 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from factors.robust import RobustLoss
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.noise import NOISE_VARIANCE_FLOOR, RESIDUAL_DIMS, NoiseConfig, ResidualNoise
+from pinpoint_fg.noise import (
+    NOISE_VARIANCE_FLOOR,
+    RESIDUAL_DIMS,
+    NoiseConfig,
+    ResidualNoise,
+    format_robust,
+    parse_robust_spec,
+)
 
 
 def _doc_with(name: str, variance: float) -> dict:
@@ -83,3 +91,12 @@ def test_the_conic_correlation_length_round_trips_and_bad_ones_are_refused(tmp_p
     for bad in (-1.0, float("nan"), float("inf"), 1e5, True):
         with pytest.raises(ValueError, match="conic_correlation_px"):
             NoiseConfig(conic_correlation_px=bad)
+
+
+def test_a_geman_mcclure_loss_round_trips_through_a_noise_file(tmp_path: Path) -> None:
+    path = tmp_path / "noise.json"
+    robust = parse_robust_spec("conic=gm:3,grasp-perpendicular=huber:1.345")
+    NoiseConfig().with_robust(robust).save(path)
+    assert json.loads(path.read_text())["robust"]["conic"] == {"loss": "gm", "k": 3.0}
+    assert NoiseConfig.load(path).robust["conic"] == RobustLoss("gm", 3.0)
+    assert format_robust(NoiseConfig.load(path).robust) == "conic=gm:3,grasp-perpendicular=huber:1.345"

@@ -450,8 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
     s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
                    help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none; "
-                        "losses none, huber, cauchy, gm); 'none' switches all off; conic=gm:3 for masks that may "
-                        "hold a suture thread; default: the noise file's or the built-in defaults")
+                        "losses none, huber, cauchy, gm); 'none' switches all off; default: the noise file's or the "
+                        "built-in conic=gm:3,grasp-perpendicular=huber:1.345")
     _add_conic_model_options(s)
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",

@@ -400,8 +400,8 @@ def centre_line_misfit(backbone: MaskBackbone) -> str | None:
     Ignored although a needle: a wire split lengthwise into two rims (a missed specular line: two curves about a
     quarter of the wire apart) and a needle whose mask includes a long, wavy suture thread. A thread in every mask
     passes the gate (the least-squares conic runs between needle and thread, within the wire's width of most
-    pixels) and defeats the default losses; a Geman-McClure conic (``track --robust conic=gm:3,...``) tracks it
-    (README, *Robust losses*).
+    pixels) and defeats Huber and Cauchy conic losses; the default Geman-McClure conic
+    (:data:`pinpoint_fg.noise.DEFAULT_ROBUST`) tracks it (README, *Robust losses*).
     """
     if backbone.foreground_share > MAX_FOREGROUND_SHARE:
         return (f"{backbone.foreground_share:.0%} of its pixels are nonzero, more than any needle covers: an inverted "

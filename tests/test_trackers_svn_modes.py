@@ -12,7 +12,7 @@ from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.summary import bimodal_from_modes
 from pinpoint_fg.trackers.base import TrackerConfig
 from pinpoint_fg.trackers.svn import FIRST_PRIOR_SIGMA, SvnTracker
-from pinpoint_fg.trackers.svn_modes import SCALE, ModeSettings, basins, laplace_terms, scaled_distance
+from pinpoint_fg.trackers.svn_modes import SCALE, Basins, ModeSettings, basins, laplace_terms, scaled_distance
 from pinpoint_fg.window import Linearization, Window
 from tests.test_trackers_svn import CAM, NEEDLE, _ambiguous_scene, _grasper, _mode_shares
 
@@ -64,6 +64,53 @@ def test_laplace_evidence_prefers_the_broader_of_two_equally_high_peaks() -> Non
     _, m2, z2 = laplace_terms(_quadratic_lin(T, peak, H / 4.0, 2.0), np.zeros(1))
     assert np.allclose([m1[0], m2[0]], 2.0, atol=1e-9)
     assert abs((z2[0] - z1[0]) - 6.0 * np.log(2.0)) < 1e-9
+
+
+def test_the_map_is_the_heaviest_modes_best_hypothesis_not_the_highest_peak() -> None:
+    """A narrow mode with the higher peak (cost 2) and a broad one 4x wider on every axis (cost 3): the broad mode
+    holds e^(6 log 4 - 1) ~ 1500x the mass, so the MAP is its best hypothesis although the narrow mode's is the
+    lowest-cost one (the choice that put calibration-01's first frame on the twin circle, 143 deg off). A mode
+    whose evidence is NaN never wins."""
+    rng = np.random.default_rng(5)
+    H = np.diag(1.0 / np.r_[[np.deg2rad(3.0)] * 3, [0.5e-3] * 3] ** 2)
+    peak_a = se3_exp(np.r_[0.3, -0.2, 0.1, 0.0, 0.0, 0.05])
+    peak_b = peak_a @ se3_exp(np.r_[np.pi / 3, 0, 0, 0, 0, 0])
+    Ta = peak_a @ se3_exp(rng.normal(size=(10, 6)) * SCALE * 0.01)
+    Tb = peak_b @ se3_exp(rng.normal(size=(10, 6)) * SCALE * 0.01)
+    lin_a, lin_b = _quadratic_lin(Ta, peak_a, 16.0 * H, 2.0), _quadratic_lin(Tb, peak_b, H, 3.0)
+    value = np.r_[lin_a.value, lin_b.value]
+    lin = Linearization(value, np.concatenate([lin_a.grad, lin_b.grad]), np.concatenate([lin_a.hess, lin_b.hess]),
+                        [], [], [], value.copy())
+    found = basins(np.concatenate([Ta, Tb]), lin, np.zeros(20))
+    assert found.reps.shape == (2,)
+    i = found.heaviest_rep()
+    assert i >= 10 and i in found.reps, i  # mode b's representative
+    assert int(np.argmin(value)) < 10  # the highest density is mode a's
+    assert np.max(found.weights) > 0.999
+    z = found.log_evidence.copy()
+    z[found.labels == found.labels[i]] = np.nan
+    nan_b = Basins(z, found.peaks, found.labels, found.reps, found.converged)
+    assert nan_b.heaviest_rep() < 10
+
+
+def test_the_trackers_map_lies_in_its_heaviest_reported_mode() -> None:
+    """Both circle poses kept (no perpendicularity, no keypoints): on every frame the reported pose is the peak of
+    the mode ``modes.csv`` would rank first."""
+    from tests.test_trackers_svn import _ambiguous_scene, _grasper
+
+    T, _, arc = _ambiguous_scene()
+    rng = np.random.default_rng(1)
+    tracker = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(grasp_perpendicular=False, tip=False,
+                                                                           tail=False), particles=50))
+    two_modes = 0
+    for k in range(8):
+        est = tracker.step(Observation(k, k / 30, backbone_px=arc + rng.normal(size=arc.shape) * 0.5,
+                                       cam_T_grasper=_grasper(T)))
+        at_map = [m for m in est.modes if np.array_equal(m.cam_T_needle, est.cam_T_needle)]
+        assert len(at_map) == 1, k
+        assert at_map[0].weight == max(m.weight for m in est.modes), (k, [m.weight for m in est.modes])
+        two_modes += sum(m.weight >= 0.1 for m in est.modes) >= 2
+    assert two_modes >= 4, two_modes  # not vacuous: the choice was made between two weighty modes
 
 
 def test_window_evidence_is_the_laplace_marginal_likelihood_of_the_marginalised_pose() -> None:

@@ -135,6 +135,11 @@ class Basins:
         """(M,) each mode's log-evidence (its best member's)."""
         return self.log_evidence[self.reps]
 
+    def heaviest_rep(self) -> int:
+        """The best hypothesis of the mode with the most posterior mass (the highest log-evidence; NaN never wins)."""
+        z = self.mode_log_evidence
+        return int(self.reps[int(np.argmax(np.where(np.isnan(z), -np.inf, z)))])
+
     @property
     def weights(self) -> np.ndarray:
         """(M,) normalised mode weights ``softmax(log Z)``."""

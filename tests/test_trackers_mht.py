@@ -142,8 +142,12 @@ def test_smoothed_poses_cover_every_frame_when_a_branch_started_inside_the_windo
     branch (frame 5; transported prior: frame 9) and the bank re-detects (frame 6), so the best smoother holds none
     of the frames it must report next. Each frame still gets exactly one smoothed pose, in order; with the parent's
     own prior the frames the best smoother started after are reported at the pose the bank held for them before
-    the switch, bitwise (a transported proposal carries them rigidly onto its mode: not compared here)."""
+    the switch, bitwise (a transported proposal carries them rigidly onto its mode: not compared here).
+
+    The Cauchy conic (the default until the twenty-third round) is pinned: with it the bank re-detects early in this
+    run; with today's Geman-McClure conic it does not, and the re-detection path would go untested."""
     from pinpoint_fg.io.recording import read_recording
+    from pinpoint_fg.noise import NoiseConfig, parse_robust_spec
     from pinpoint_fg.observe import observe_frame
     from pinpoint_fg.track import tracker_config
 
@@ -151,7 +155,8 @@ def test_smoothed_poses_cover_every_frame_when_a_branch_started_inside_the_windo
     assert main(["simulate", "--scenario", "snapshots", "--frames", "40", "--seed", "1", "--out", str(run)]) == 0
     rec = read_recording(run)
     L, n = 3, (12 if transport else 8)
-    tr = MhtTracker(tracker_config(rec, "mht", window=L, seed=1), MhtConfig(transport_prior=transport))
+    cauchy = NoiseConfig().with_robust(parse_robust_spec("conic=cauchy:3,grasp-perpendicular=huber:1.345"))
+    tr = MhtTracker(tracker_config(rec, "mht", noise=cauchy, window=L, seed=1), MhtConfig(transport_prior=transport))
     frames, switched = [], {"admitted": 0, "reseeded": 0}
     for fr in rec.frames[:n]:
         held = [b.smoother.pending() for b in tr.branches]  # the bank's poses of the frames still to report

@@ -3,7 +3,8 @@
 Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR [--methods svn map mht] [--runs GLOB ...]
 [--robust SPEC]``
 (e.g. the runs of ``pinpoint-fg simulate`` for each scenario with another ``--seed`` than the benchmark's;
-``--runs 'snapshots-0[1-8]'`` keeps the runs whose names match a glob; ``--methods svn`` scores one method, e.g. to
+``--runs 'snapshots-0[1-8]'`` keeps the runs whose names match a glob; ``--methods svn`` scores one method (``pf``
+and ``svgd`` are accepted too), e.g. to
 compare two trees by running this from each with ``PYTHONPATH`` set to it; ``--robust`` sets the robust losses as
 ``track --robust`` does, e.g. ``conic=cauchy:3,grasp-perpendicular=huber:1.345``, the default before the
 twenty-third round, against today's). Each run is
@@ -57,7 +58,7 @@ def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ..
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", type=Path)
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=(*METHODS, "pf", "svgd"))
     ap.add_argument("--runs", nargs="+", default=["*"], help="globs of run names to keep")
     ap.add_argument("--robust", type=parse_robust_spec, default=None, help="robust losses, as track --robust")
     args = ap.parse_args()

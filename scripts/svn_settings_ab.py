@@ -1,7 +1,7 @@
 """Two SVN settings side by side on the same frames: CPU per frame and the MAP pose's mean errors (issue 10).
 
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_settings_ab.py FIELD VALUE_A VALUE_B
-RUN [RUN ...]`` (e.g. ``floor_each true false /tmp/runs/normal-01``; FIELD is an
+RUN [RUN ...] [--reference RESULT ...]`` (e.g. ``floor_each true false /tmp/runs/normal-01``; FIELD is an
 :class:`~pinpoint_fg.trackers.svn.SvnSettings` field, or ``modes.NAME`` for a
 :class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one; the values are parsed as JSON: ``true``, ``2``, ``0.5``;
 several fields comma-separated with JSON lists of values: ``modes.polish_iters,modes.max_candidates [8,6] [30,19]``;
@@ -16,6 +16,11 @@ truth (``kept``) and the modes verdict (second mode >= 0.1, ``bim``), all over t
 the ratio B / A of the CPU medians; last, the ratio of the summed per-run medians. The ambiguous scenarios
 (symmetric, snapshots, drive) are chaotic: a change of round-off alone moves their errors, so judge accuracy over
 several seeds.
+
+``--reference RESULT ...``: MHT results of the same runs (matched by ``result.json``'s ``recording_name``, e.g.
+``/tmp/bench29/results/snapshots/mht``): each run with one then also prints, per setting, the modes verdict's rate
+on the frames that result calls multimodal (its second mode >= 0.1) and on those it calls single-mode, as
+``evaluate --reference`` and the benchmark's ``bim. MHT multi/single`` column judge it (issue 9).
 """
 
 from __future__ import annotations
@@ -30,10 +35,12 @@ import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
 from pinpoint_fg.eval.modes import near_truth
+from pinpoint_fg.io.jsonfile import load_json
 from pinpoint_fg.io.recording import read_recording
+from pinpoint_fg.io.result import read_modes
 from pinpoint_fg.kinematic_bias import BiasModel
 from pinpoint_fg.observe import observe_frame
-from pinpoint_fg.posterior.summary import bimodal_from_modes, modes_of_estimate
+from pinpoint_fg.posterior.summary import BIMODAL_MODE_WEIGHT, bimodal_from_modes, modes_of_estimate, second_mode_weight
 from pinpoint_fg.track import suggested_disable, tracker_config
 from pinpoint_fg.trackers.svn import SvnSettings, SvnTracker
 from pinpoint_fg.trackers.svn_modes import ModeSettings
@@ -55,13 +62,35 @@ def _with(field: str, value: object) -> SvnSettings:
     return dataclasses.replace(SvnSettings(), modes=dataclasses.replace(ModeSettings(), **modes), **top)
 
 
+def _reference_multimodal(results: list[Path]) -> dict[str, dict[int, bool]]:
+    """Per recording name, per frame: whether the reference result calls the frame multimodal (second mode >= 0.1)."""
+    out: dict[str, dict[int, bool]] = {}
+    for res in results:
+        modes = read_modes(res)
+        name = str(load_json(res / "result.json")["recording_name"])
+        out[name] = {int(f): second_mode_weight(modes.weight[modes.frame == f]) >= BIMODAL_MODE_WEIGHT
+                     for f in np.unique(modes.frame)}
+    return out
+
+
+def _verdict_rates(bimodal: list[tuple[int, bool]], ref: dict[int, bool]) -> str:
+    """The verdict's bimodal rate on the reference's multimodal / single-mode frames, with their counts."""
+    cells = []
+    for want in (True, False):
+        v = [b for f, b in bimodal if ref.get(f) is want]
+        cells.append(f"{np.mean(v):4.0%} of {len(v)}" if v else "   - of 0")
+    return " / ".join(cells)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("field")
     ap.add_argument("value_a")
     ap.add_argument("value_b")
     ap.add_argument("runs", type=Path, nargs="+")
+    ap.add_argument("--reference", type=Path, nargs="+", default=[])
     args = ap.parse_args()
+    references = _reference_multimodal(args.reference)
     values = [json.loads(args.value_a), json.loads(args.value_b)]
     settings = [_with(args.field, v) for v in values]
     totals = np.zeros(2)
@@ -73,6 +102,7 @@ def main() -> None:
         trackers = [SvnTracker(config, s) for s in settings]
         cpu = np.zeros((2, len(rec.frames)))
         err: list[list[tuple[float, float, bool, bool]]] = [[], []]
+        verdicts: list[list[tuple[int, bool]]] = [[], []]
         mask = np.zeros(len(rec.frames), dtype=bool)
         for k, frame in enumerate(rec.frames):
             obs = observe_frame(rec, frame)
@@ -81,6 +111,7 @@ def main() -> None:
                 t0 = time.thread_time()
                 est = tracker.step(obs)
                 cpu[i, k] = 1e3 * (time.thread_time() - t0)
+                verdicts[i].append((int(frame.frame), bool(bimodal_from_modes(modes_of_estimate(est)))))
                 if frame.cam_T_needle_gt is not None:
                     e = pose_errors(est.cam_T_needle[None], frame.cam_T_needle_gt[None])
                     err[i].append((1e3 * float(e.trans_m[0]), float(np.degrees(e.rot_rad[0])),
@@ -96,6 +127,10 @@ def main() -> None:
                         f"{np.median(cpu[i, sel & mask]):5.1f} {mm:6.3f} {deg:6.2f} {kept:5.0%} {bim:4.0%}")
         ratio = np.median(cpu[1, sel]) / np.median(cpu[0, sel])
         print(f"{run.name:16s} " + " | ".join(cols) + f" | {ratio:.3f}", flush=True)
+        if rec.info.name in references:
+            print(f"{'':16s} bimodal on the reference's multimodal / single-mode frames: "
+                  + " | ".join(f"{args.field}={v!s}: {_verdict_rates(verdicts[i], references[rec.info.name])}"
+                               for i, v in enumerate(values)), flush=True)
     print(f"sum of the per-run medians, B / A: {totals[1] / totals[0]:.3f}")
 
 

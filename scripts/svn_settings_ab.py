@@ -34,13 +34,13 @@ from pathlib import Path
 import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
-from pinpoint_fg.eval.modes import near_truth
+from pinpoint_fg.eval.modes import near_truth, reference_rates
 from pinpoint_fg.io.jsonfile import load_json
 from pinpoint_fg.io.recording import read_recording
 from pinpoint_fg.io.result import read_modes
 from pinpoint_fg.kinematic_bias import BiasModel
 from pinpoint_fg.observe import observe_frame
-from pinpoint_fg.posterior.summary import BIMODAL_MODE_WEIGHT, bimodal_from_modes, modes_of_estimate, second_mode_weight
+from pinpoint_fg.posterior.summary import bimodal_from_modes, modes_of_estimate
 from pinpoint_fg.track import suggested_disable, tracker_config
 from pinpoint_fg.trackers.svn import SvnSettings, SvnTracker
 from pinpoint_fg.trackers.svn_modes import ModeSettings
@@ -62,24 +62,22 @@ def _with(field: str, value: object) -> SvnSettings:
     return dataclasses.replace(SvnSettings(), modes=dataclasses.replace(ModeSettings(), **modes), **top)
 
 
-def _reference_multimodal(results: list[Path]) -> dict[str, dict[int, bool]]:
-    """Per recording name, per frame: whether the reference result calls the frame multimodal (second mode >= 0.1)."""
-    out: dict[str, dict[int, bool]] = {}
+def _references(results: list[Path]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per recording name, the reference result's mode frames and sorted weights (``ModeHistory.weights_at``)."""
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for res in results:
         modes = read_modes(res)
-        name = str(load_json(res / "result.json")["recording_name"])
-        out[name] = {int(f): second_mode_weight(modes.weight[modes.frame == f]) >= BIMODAL_MODE_WEIGHT
-                     for f in np.unique(modes.frame)}
+        out[str(load_json(res / "result.json")["recording_name"])] = (modes.frames, modes.weights_at(modes.frames))
     return out
 
 
-def _verdict_rates(bimodal: list[tuple[int, bool]], ref: dict[int, bool]) -> str:
-    """The verdict's bimodal rate on the reference's multimodal / single-mode frames, with their counts."""
-    cells = []
-    for want in (True, False):
-        v = [b for f, b in bimodal if ref.get(f) is want]
-        cells.append(f"{np.mean(v):4.0%} of {len(v)}" if v else "   - of 0")
-    return " / ".join(cells)
+def _verdict_rates(frames: np.ndarray, bimodal: np.ndarray, ref: tuple[np.ndarray, np.ndarray]) -> str:
+    """The modes verdict's bimodal rate on the reference's multimodal / single-mode frames, with their counts, as
+    ``evaluate --reference`` computes them (:func:`pinpoint_fg.eval.modes.reference_rates`)."""
+    every = np.ones(frames.shape[0], dtype=bool)
+    r = reference_rates(frames, bimodal, every, bimodal, every, *ref)
+    return " / ".join(f"{r['bimodal_modes_ref_' + part + '_rate']:4.0%} of {r['ref_' + label + '_frames']}"
+                      for part, label in (("multi", "multimodal"), ("single", "single")))
 
 
 def main() -> None:
@@ -90,7 +88,7 @@ def main() -> None:
     ap.add_argument("runs", type=Path, nargs="+")
     ap.add_argument("--reference", type=Path, nargs="+", default=[])
     args = ap.parse_args()
-    references = _reference_multimodal(args.reference)
+    references = _references(args.reference)
     values = [json.loads(args.value_a), json.loads(args.value_b)]
     settings = [_with(args.field, v) for v in values]
     totals = np.zeros(2)
@@ -102,7 +100,7 @@ def main() -> None:
         trackers = [SvnTracker(config, s) for s in settings]
         cpu = np.zeros((2, len(rec.frames)))
         err: list[list[tuple[float, float, bool, bool]]] = [[], []]
-        verdicts: list[list[tuple[int, bool]]] = [[], []]
+        verdicts = np.zeros((2, len(rec.frames)), dtype=bool)
         mask = np.zeros(len(rec.frames), dtype=bool)
         for k, frame in enumerate(rec.frames):
             obs = observe_frame(rec, frame)
@@ -111,7 +109,7 @@ def main() -> None:
                 t0 = time.thread_time()
                 est = tracker.step(obs)
                 cpu[i, k] = 1e3 * (time.thread_time() - t0)
-                verdicts[i].append((int(frame.frame), bool(bimodal_from_modes(modes_of_estimate(est)))))
+                verdicts[i, k] = bimodal_from_modes(modes_of_estimate(est))
                 if frame.cam_T_needle_gt is not None:
                     e = pose_errors(est.cam_T_needle[None], frame.cam_T_needle_gt[None])
                     err[i].append((1e3 * float(e.trans_m[0]), float(np.degrees(e.rot_rad[0])),
@@ -128,8 +126,9 @@ def main() -> None:
         ratio = np.median(cpu[1, sel]) / np.median(cpu[0, sel])
         print(f"{run.name:16s} " + " | ".join(cols) + f" | {ratio:.3f}", flush=True)
         if rec.info.name in references:
+            ref, frames = references[rec.info.name], np.array([f.frame for f in rec.frames])
             print(f"{'':16s} bimodal on the reference's multimodal / single-mode frames: "
-                  + " | ".join(f"{args.field}={v!s}: {_verdict_rates(verdicts[i], references[rec.info.name])}"
+                  + " | ".join(f"{args.field}={v!s}: {_verdict_rates(frames, verdicts[i], ref)}"
                                for i, v in enumerate(values)), flush=True)
     print(f"sum of the per-run medians, B / A: {totals[1] / totals[0]:.3f}")
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from factors.lie import homogeneous, local, se3_exp
+from factors.lie import cross, homogeneous, local, se3_exp
 from factors.residuals import needle_image_conic
 from pinpoint_fg.conic_fit import fit_conic
 from pinpoint_fg.likelihood import FrameLikelihood
@@ -77,7 +77,7 @@ def circle_poses_from_conic(C: np.ndarray, K: np.ndarray, radius_m: float) -> li
         # intersect the cone with the plane n.X = 1: X = n + u1 s + u2 t
         u1 = e2 - (e2 @ n) * n
         u1 /= np.linalg.norm(u1)
-        u2 = np.cross(n, u1)
+        u2 = cross(n, u1)  # np.cross's formula, bit for bit, at a fraction of its per-call cost
         B = np.stack([u1, u2, n], axis=1)  # (3, 3): X = B [s, t, 1]
         M = B.T @ Q @ B
         A2 = M[:2, :2]

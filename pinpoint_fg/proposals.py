@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factors.lie import local, se3_exp, se3_inverse, se3_right_jacobian_inv
+from factors.lie import cross, local, se3_exp, se3_inverse, se3_right_jacobian_inv
 from factors.residuals import as_pose_batch, needle_image_conic
 from pinpoint_fg.conic_fit import fit_conic
 from pinpoint_fg.init import circle_poses_from_conic
@@ -116,10 +116,10 @@ def pose_on_circle(centre_m: np.ndarray, normal: np.ndarray, cam_dir_mid: np.nda
     m = np.atleast_2d(np.asarray(cam_dir_mid, dtype=float))
     m = m - np.sum(m * n, axis=1, keepdims=True) * n
     m = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
-    nxm = np.cross(n, m)
+    nxm = cross(n, m)
     x = np.cos(mid_angle_rad) * m - np.sin(mid_angle_rad) * nxm
     T = np.tile(np.eye(4), (c.shape[0], 1, 1))
-    T[:, :3, :3] = np.stack([x, np.cross(n, x), n], axis=2)
+    T[:, :3, :3] = np.stack([x, cross(n, x), n], axis=2)
     T[:, :3, 3] = c
     return T
 
@@ -159,7 +159,7 @@ def twin_poses(cam_T_needle: np.ndarray, K: np.ndarray, radius_m: float, tail_an
         c, n = sols[j]
         p = needle_pts @ Ti[:3, :3].T + Ti[:3, 3]
         q = _rays_to_plane(p, c, n) - c
-        nn = n * np.sign(np.cross(q[0], q[2]) @ n) * sense
+        nn = n * np.sign(cross(q[0], q[2]) @ n) * sense
         out.append(pose_on_circle(c, nn, q[1], a_mid)[0])
     return np.stack(out) if out else np.zeros((0, 4, 4))
 
@@ -181,21 +181,24 @@ def frame_ellipse_poses(backbone_px: np.ndarray | None, K: np.ndarray, radius_m:
     K = np.asarray(K, dtype=float)
     rays = np.linalg.solve(K, np.concatenate([backbone_px, np.ones((len(backbone_px), 1))], axis=1).T).T
     a_mid = 0.5 * (tail_angle_rad + tip_angle_rad)
-    out = []
+    rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (centre, normal, midpoint direction) per pose
     for c, n in circle_poses_from_conic(C, K, radius_m):
         q = _rays_to_plane(rays, c, n) - c
         b1 = q[0] - (q[0] @ n) * n
         b1 = b1 / np.linalg.norm(b1)
-        b2 = np.cross(n, b1)
+        b2 = cross(n, b1)
         ang = np.sort(np.mod(np.arctan2(q @ b2, q @ b1), 2 * np.pi))
         gaps = np.diff(np.r_[ang, ang[0] + 2 * np.pi])
         g = int(np.argmax(gaps))
         start = ang[(g + 1) % len(ang)]  # the occupied range runs from the gap's end ...
         mid = start + 0.5 * (2 * np.pi - gaps[g])  # ... over 2 pi - gap
         m = np.cos(mid) * b1 + np.sin(mid) * b2
-        for s in (1.0, -1.0):
-            out.append(pose_on_circle(c, s * n, m, a_mid)[0])
-    return (np.stack(out) if out else np.zeros((0, 4, 4))), C
+        rows += [(c, s * n, m) for s in (1.0, -1.0)]
+    if not rows:
+        return np.zeros((0, 4, 4)), C
+    # all poses in one call: pose_on_circle works row by row (the same bits as one call per pose)
+    centres, normals, mids = (np.stack(a) for a in zip(*rows, strict=True))
+    return pose_on_circle(centres, normals, mids, a_mid), C
 
 
 def near(T_a: np.ndarray, T_b: np.ndarray, separation: tuple[float, float] = DEFAULT_SEPARATION) -> np.ndarray:
@@ -211,15 +214,21 @@ def near(T_a: np.ndarray, T_b: np.ndarray, separation: tuple[float, float] = DEF
 
 def dedupe(T: np.ndarray, existing: np.ndarray | None = None,
            separation: tuple[float, float] = DEFAULT_SEPARATION) -> np.ndarray:
-    """Indices of the poses to keep, in order: the first of each cluster, none near an ``existing`` pose."""
+    """Indices of the poses to keep, in order: the first of each cluster, none near an ``existing`` pose.
+
+    Greedy in order: pose ``i`` is kept unless it is :func:`near` an ``existing`` pose or a pose kept before it.
+    Every pair is tested in one :func:`near` call (the same per-pair products, bit for bit, as one call per pose;
+    ``tests/test_proposals.py`` pins it to that loop): per-call overhead, not arithmetic, was the cost (~15 poses).
+    """
     T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
     E = np.zeros((0, 4, 4)) if existing is None else np.asarray(existing, dtype=float).reshape(-1, 4, 4)
+    close = near(T, np.concatenate([E, T]), separation)  # (n, e + n)
+    by_existing = close[:, :E.shape[0]].any(axis=1).tolist()
+    among = close[:, E.shape[0]:].tolist()
     kept: list[int] = []
     for i in range(T.shape[0]):
-        ref = np.concatenate([E, T[kept]]) if kept else E
-        if ref.shape[0] and near(T[i], ref, separation).any():
-            continue
-        kept.append(i)
+        if not by_existing[i] and not any(among[i][k] for k in kept):
+            kept.append(i)
     return np.asarray(kept, dtype=int)
 
 

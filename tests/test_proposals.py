@@ -17,6 +17,7 @@ from pinpoint_fg.proposals import (
     mode_proposals,
     near,
     polish_with_prior,
+    pose_on_circle,
     twin_poses,
 )
 from tests.test_trackers_pf import CAMERA, NEEDLE, observe, true_pose
@@ -102,6 +103,41 @@ def test_mode_proposals_keep_the_ellipse_and_are_distinct() -> None:
     assert Pf.shape[0] > P.shape[0] and np.all(gap < 1e-9)
     # existing modes are excluded
     assert mode_proposals(T, lik, existing=P[:2], frame_ellipse=False).shape[0] == 5
+
+
+def test_pose_on_circle_rows_are_independent() -> None:
+    # frame_ellipse_poses builds its four poses in one call: each row must be the one-row call's, bit for bit
+    rng = np.random.default_rng(11)
+    c, n, m = rng.normal(size=(6, 3)), rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    together = pose_on_circle(c, n, m, 0.7)
+    one_by_one = np.stack([pose_on_circle(c[i], n[i], m[i], 0.7)[0] for i in range(6)])
+    assert together.tobytes() == one_by_one.tobytes()
+
+
+def _dedupe_one_by_one(T: np.ndarray, existing: np.ndarray) -> list[int]:
+    """The reference: one :func:`near` call per pose against the existing poses and those kept so far."""
+    kept: list[int] = []
+    for i in range(T.shape[0]):
+        ref = np.concatenate([existing, T[kept]])
+        if ref.shape[0] and near(T[i], ref).any():
+            continue
+        kept.append(i)
+    return kept
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_dedupe_equals_the_one_by_one_loop(seed: int) -> None:
+    # clusters at the separation's scale (5 deg, 1 mm), so that chains of near pairs occur: a pose near a dropped
+    # pose but not near a kept one must stay
+    rng = np.random.default_rng(seed)
+    base = true_pose()
+    spread = rng.choice([0.03, 0.08, 0.5])
+    T = base @ se3_exp(np.concatenate([rng.normal(size=(12, 3)) * spread, rng.normal(size=(12, 3)) * 1e-3 * spread
+                                       / 0.08], axis=1))
+    E = T[rng.choice(12, size=rng.integers(0, 3), replace=False)] @ se3_exp(rng.normal(size=6) * 1e-3)
+    assert dedupe(T, E).tolist() == _dedupe_one_by_one(T, E.reshape(-1, 4, 4))
+    assert dedupe(T).tolist() == _dedupe_one_by_one(T, np.zeros((0, 4, 4)))
+    assert dedupe(T[:0]).tolist() == []
 
 
 def test_gaussian_log_normaliser() -> None:

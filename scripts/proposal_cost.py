@@ -54,6 +54,8 @@ def main() -> None:
     total = dict.fromkeys(("mode_proposals", "twin_poses", "frame_ellipse_poses", "arc_flips", "dedupe"), 0.0)
     for lik, T in cases:
         px = lik.observation.backbone_px
+        # the parts' inputs as mode_proposals builds them (its twin, the frame's circles, their flips), so that each
+        # part is timed on what it gets there
         base = np.concatenate([T[None], P.twin_poses(T[None], K, nd.radius_m, ta, pa),
                                P.frame_ellipse_poses(px, K, nd.radius_m, ta, pa)[0]])
         cands = np.concatenate([base[1:], P.arc_flips(base, ta, pa).reshape(-1, 4, 4)])

@@ -189,6 +189,17 @@ def test_window_smoothing_reports_lagged_estimate() -> None:
     assert all(np.linalg.norm(e.smoothed[2][:3, 3] - T[:3, 3]) < 2e-3 for e in ests[2:])
 
 
+def _turning_frame(k: int, mask: bool = True) -> Observation:
+    """Frame ``k`` of a needle turning 0.02 rad per frame about its normal: mask (0.5 px noise; unless ``mask`` is
+    False), tip, tail, grasper."""
+    rng = np.random.default_rng(k)  # the same frame for every tracker
+    Tk = se3_exp(np.r_[0.2, 0.1, 0.0, 0.0, 0.0, 0.05]) @ se3_exp(np.r_[0.0, 0.0, 0.02 * k, 0.0, 0.0, 0.0])
+    R, t = Tk[:3, :3], Tk[:3, 3]
+    px = CAM.project(NEEDLE.arc_points(40) @ R.T + t) + rng.normal(scale=0.5, size=(40, 2))
+    return Observation(k, k / 30, cam_T_grasper=_grasper(Tk), backbone_px=px if mask else None,
+                       tip_px=CAM.project(R @ NEEDLE.tip_m + t), tail_px=CAM.project(R @ NEEDLE.tail_m + t))
+
+
 @pytest.mark.parametrize("frames_before", [2, 5])
 def test_the_early_stops_last_small_step_is_skipped_with_the_same_decision(frames_before: int) -> None:
     """``skip_last_step``: the transport stops after the same iterations, where the full loop was before its last
@@ -196,16 +207,7 @@ def test_the_early_stops_last_small_step_is_skipped_with_the_same_decision(frame
     import copy
     from dataclasses import replace
 
-    T = se3_exp(np.r_[0.2, 0.1, 0.0, 0.0, 0.0, 0.05])
-
-    def obs(k: int) -> Observation:
-        rng = np.random.default_rng(k)  # the same frame for both trackers
-        Tk = T @ se3_exp(np.r_[0.0, 0.0, 0.02 * k, 0.0, 0.0, 0.0])
-        R, t = Tk[:3, :3], Tk[:3, 3]
-        px = CAM.project(NEEDLE.arc_points(40) @ R.T + t) + rng.normal(scale=0.5, size=(40, 2))
-        return Observation(k, k / 30, cam_T_grasper=_grasper(Tk), backbone_px=px,
-                           tip_px=CAM.project(R @ NEEDLE.tip_m + t), tail_px=CAM.project(R @ NEEDLE.tail_m + t))
-
+    obs = _turning_frame
     tr = _tracker()
     for k in range(frames_before):
         tr.step(obs(k))
@@ -241,6 +243,79 @@ def test_the_early_stops_last_small_step_is_skipped_with_the_same_decision(frame
     assert np.quantile(np.linalg.norm(last[:, 3:], axis=1), 0.95) < full.svn.stop_trans_m
     assert np.quantile(np.linalg.norm(last[:, :3], axis=1), 0.95) < full.svn.stop_rot_rad
     assert np.all(np.isfinite(v_s))
+
+
+def test_model_disagreement_is_zero_on_a_quadratic_cost_and_relative_otherwise() -> None:
+    """:func:`model_disagreement`: ``|actual - (g^T d + 1/2 d^T H d)| / (|model| + 0.1)``, 95th percentile."""
+    from types import SimpleNamespace
+
+    from pinpoint_fg.trackers.svn import model_disagreement
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(40, 6, 6))
+    lin = SimpleNamespace(grad=rng.normal(size=(40, 6)), hess=A @ np.swapaxes(A, 1, 2) + np.eye(6))
+    d = 0.3 * rng.normal(size=(40, 6))
+    value = rng.uniform(5.0, 50.0, size=40)
+    model = np.einsum("ni,ni->n", lin.grad, d) + 0.5 * np.einsum("ni,nij,nj->n", d, lin.hess, d)
+    assert model_disagreement(lin, d, value, value + model) < 1e-12  # a quadratic cost: the model is exact
+    off = rng.uniform(-1.0, 1.0, size=40)  # actual change = model + off nats
+    expected = np.quantile(np.abs(off) / (np.abs(model) + 0.1), 0.95)
+    assert model_disagreement(lin, d, value, value + model + off) == pytest.approx(expected, rel=1e-12)
+    bad = value + model
+    bad[7] = np.nan
+    assert np.isnan(model_disagreement(lin, d, value, bad))  # never "agrees" on a non-finite cost
+
+
+@pytest.mark.parametrize("frames_before", [2, 5])
+def test_a_step_the_model_predicted_lets_the_next_small_step_stop_the_transport(frames_before: int) -> None:
+    """``stop_model_tol``: the transport takes the same steps as with the quiet test alone until it stops, and stops
+    no later: bit for bit where the plain loop was after as many steps. On frames without a mask (keypoints and
+    grasp: a cost close to quadratic in the pose) the first step agrees with the model, and the transport stops
+    sooner on one of the next three frames."""
+    import copy
+    from dataclasses import replace
+
+    tr = _tracker()
+    assert tr.svn.stop_model_tol > 0
+    for k in range(frames_before):
+        tr.step(_turning_frame(k, mask=k < 2))
+    model, plain = copy.deepcopy(tr), copy.deepcopy(tr)
+    plain.svn = replace(plain.svn, stop_model_tol=0.0)
+    saved = 0
+    for k in range(frames_before, frames_before + 3):
+        after: list[np.ndarray] = [plain.window.newest.copy()]  # plain's poses after each of its steps
+        results = {}
+        for name, t in (("model", model), ("plain", plain)):
+            transport = t._transport
+
+            def recorded(max_iters: int, t=t, transport=transport, name=name, after=after, results=results):
+                move = t.window.move_newest
+                if name == "plain":  # on this window only, for the transport only (subsets copy attributes)
+                    def recording_move(*args, **kwargs):
+                        out = move(*args, **kwargs)
+                        after.append(t.window.newest.copy())
+                        return out
+                    t.window.move_newest = recording_move
+                    after[0] = t.window.newest.copy()
+                out = transport(max_iters)
+                if name == "plain":
+                    del t.window.move_newest
+                results[name] = (out[0], t.window.newest.copy())
+                return out
+
+            t._transport = recorded
+            t.step(_turning_frame(k, mask=False))
+            del t._transport
+        (it_m, P_m), (it_p, _) = results["model"], results["plain"]
+        assert it_m <= it_p
+        np.testing.assert_array_equal(P_m, after[it_m - 1])  # it_m linearisations, it_m - 1 steps taken
+        saved += it_p - it_m
+        if it_m < it_p:
+            break
+        # the same poses: continue both from the model tracker's state
+        plain = copy.deepcopy(model)
+        plain.svn = replace(plain.svn, stop_model_tol=0.0)
+    assert saved > 0
 
 
 @pytest.mark.parametrize("method", ["svn", "svgd"])

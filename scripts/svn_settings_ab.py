@@ -6,7 +6,7 @@ RUN [RUN ...] [--reference RESULT ...]`` (e.g. ``floor_each true false /tmp/runs
 :class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one; the values are parsed as JSON: ``true``, ``2``, ``0.5``;
 several fields comma-separated with JSON lists of values: ``modes.polish_iters,modes.max_candidates [8,6] [30,19]``;
 ``kinematic_bias`` takes ``null`` or a :class:`~pinpoint_fg.kinematic_bias.BiasModel` as a JSON object,
-``'{"tau_s": 5, "white_share": 0.3}'``).
+``'{"tau_s": 5, "white_share": 0.3}'``). ``--window L``: both trackers smooth over L frames (default 1).
 
 Both trackers are stepped in turn on every frame (lock-step, one thread: load on the machine hits both alike),
 with the run's suggested switches (``track``'s own). Prints per run the median thread-CPU milliseconds per frame
@@ -87,6 +87,7 @@ def main() -> None:
     ap.add_argument("value_b")
     ap.add_argument("runs", type=Path, nargs="+")
     ap.add_argument("--reference", type=Path, nargs="+", default=[])
+    ap.add_argument("--window", type=int, default=1, help="window length L of both trackers (default 1)")
     args = ap.parse_args()
     references = _references(args.reference)
     values = [json.loads(args.value_a), json.loads(args.value_b)]
@@ -96,7 +97,7 @@ def main() -> None:
                                         for v in values) + " | B/A")
     for run in args.runs:
         rec = read_recording(run)
-        config = tracker_config(rec, "svn", disable=suggested_disable(run), seed=0)
+        config = tracker_config(rec, "svn", window=args.window, disable=suggested_disable(run), seed=0)
         trackers = [SvnTracker(config, s) for s in settings]
         cpu = np.zeros((2, len(rec.frames)))
         err: list[list[tuple[float, float, bool, bool]]] = [[], []]

@@ -266,16 +266,19 @@ def test_model_disagreement_is_zero_on_a_quadratic_cost_and_relative_otherwise()
     assert np.isnan(model_disagreement(lin, d, value, bad))  # never "agrees" on a non-finite cost
 
 
+@pytest.mark.parametrize("window", [1, 3])
 @pytest.mark.parametrize("frames_before", [2, 5])
-def test_a_step_the_model_predicted_lets_the_next_small_step_stop_the_transport(frames_before: int) -> None:
+def test_a_step_the_model_predicted_lets_the_next_small_step_stop_the_transport(frames_before: int, window: int
+                                                                                ) -> None:
     """``stop_model_tol``: the transport takes the same steps as with the quiet test alone until it stops, and stops
     no later: bit for bit where the plain loop was after as many steps. On frames without a mask (keypoints and
     grasp: a cost close to quadratic in the pose) the first step agrees with the model, and the transport stops
-    sooner on one of the next three frames."""
+    sooner on one of the next three frames, with one pose per window and with three (where the safeguard's trial
+    cost is not the window's: the test reads the window's cost from the next linearisation)."""
     import copy
     from dataclasses import replace
 
-    tr = _tracker()
+    tr = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(), particles=30, window=window))
     assert tr.svn.stop_model_tol > 0
     for k in range(frames_before):
         tr.step(_turning_frame(k, mask=k < 2))
@@ -316,6 +319,21 @@ def test_a_step_the_model_predicted_lets_the_next_small_step_stop_the_transport(
         plain = copy.deepcopy(model)
         plain.svn = replace(plain.svn, stop_model_tol=0.0)
     assert saved > 0
+
+
+@pytest.mark.parametrize("window", [1, 3])
+def test_steady_frames_without_a_mask_stop_after_one_small_step(window: int) -> None:
+    """Tracking a steady turn on keypoints and grasp alone (a cost close to quadratic), the model test ends each
+    transport one linearisation sooner than the quiet test's two small steps would, at L = 1 and at L = 3 (there
+    only because the window's cost after a step is read from the next linearisation, not the safeguard's trial)."""
+    from dataclasses import replace
+
+    counts = {}
+    for tol in (0.05, 0.0):
+        tr = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(), particles=30, window=window))
+        tr.svn = replace(tr.svn, stop_model_tol=tol)
+        counts[tol] = [tr.step(_turning_frame(k, mask=k < 2)).iterations for k in range(12)]
+    assert all(m < p for m, p in zip(counts[0.05][8:], counts[0.0][8:], strict=True)), counts
 
 
 @pytest.mark.parametrize("method", ["svn", "svgd"])

@@ -26,8 +26,10 @@ Per frame (DESIGN.md §Inference):
    useful here: ``SvnSettings.stop_logp``), or one small step after a step that the Gauss-Newton model
    predicted: every particle's cost changed by what ``g^T d + 1/2 d^T H d`` said, to 5 % (at the 95th
    percentile; ``SvnSettings.stop_model_tol``). Where the model holds, a small next step is the converged
-   one and a second small step adds nothing. The last of those small steps is computed, found small, and
-   not taken (``SvnSettings.skip_last_step``): the same decision, one evaluation fewer.
+   one and a second small step adds nothing. The cost after the step is the window's, from the next
+   linearisation (at L = 1 the accepted trial's own; at L > 1 the safeguard's trial cost keeps the older
+   poses' share constant, which the eliminated model does not). The last of those small steps is computed,
+   found small, and not taken (``SvnSettings.skip_last_step``): the same decision, one evaluation fewer.
 5. **Modes** (:mod:`pinpoint_fg.trackers.svn_modes`, before the transport) — Stein transport
    cannot move particles between basins, and an ambiguity can *emerge* while tracking (the
    needle turns through an edge-on view) far from every hypothesis. The hypotheses are grouped
@@ -331,12 +333,16 @@ class SvnTracker(Tracker):
         """Run the Stein iterations; returns (iterations, negative log-posterior (N,))."""
         s = self.svn
         quiet = 0
-        agreed = False  # the last step taken changed the cost as the model predicted (stop_model_tol)
+        taken = None  # (model, step) of the last step taken, for the model test (stop_model_tol)
+        agreed = False  # that step changed the cost as its model predicted
         best_prev = None
         value = None
         iterations = 0
         for iterations in range(1, max_iters + 1):  # noqa: B007 - the count is returned
             lin = self.window.linearize()
+            # the window's cost after the last step against its model's prediction (module docstring, step 4)
+            agreed = taken is not None and (
+                model_disagreement(taken[0], taken[1], taken[0].value, lin.value) < s.stop_model_tol)
             value = lin.value
             ref = int(np.argmin(value + self.window.evidence))
             T = self.window.newest
@@ -371,9 +377,8 @@ class SvnTracker(Tracker):
                 scale = np.where(bad, 0.0, scale)
                 trial = None  # the last trial is not the accepted step
             delta = delta * scale[:, None]
-            # trial None: a particle stays put, so new_val is not the accepted poses' cost
-            agrees = (s.stop_model_tol > 0 and trial is not None
-                      and model_disagreement(lin, delta, value, new_val) < s.stop_model_tol)
+            # a particle whose step the safeguard cut to nothing (trial None) is one the model did not predict
+            taken = (lin, delta) if s.stop_model_tol > 0 and trial is not None else None
             self.window.move_newest(delta, lin, newest=trial)
             best = -float(np.min(value + self.window.evidence))
             small = self._small(delta)
@@ -382,7 +387,6 @@ class SvnTracker(Tracker):
             best_prev = best
             if quiet >= s.stop_quiet or (quiet and agreed):
                 break
-            agreed = agrees
         lin = self.window.linearize()
         self._lin = lin
         final = lin.value + self.window.evidence

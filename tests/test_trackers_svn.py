@@ -200,6 +200,36 @@ def _turning_frame(k: int, mask: bool = True) -> Observation:
                        tip_px=CAM.project(R @ NEEDLE.tip_m + t), tail_px=CAM.project(R @ NEEDLE.tail_m + t))
 
 
+def _recorded_step(t: SvnTracker, observation: Observation, moves: bool
+                   ) -> tuple[int, np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Step ``t``; returns its transport's iterations, final newest poses and returned values, and (``moves``) the
+    newest poses before each of the transport's steps. ``move_newest`` is wrapped on the tracker's own window and
+    during the transport only (window subsets copy attributes)."""
+    before: list[np.ndarray] = []
+    result = {}
+    transport = t._transport
+
+    def recorded(max_iters: int):
+        move = t.window.move_newest
+        if moves:
+            def recording_move(*args, **kwargs):
+                before.append(t.window.newest.copy())
+                return move(*args, **kwargs)
+            t.window.move_newest = recording_move
+        out = transport(max_iters)
+        if moves:
+            del t.window.move_newest
+        result["out"] = (out[0], t.window.newest.copy(), out[1].copy())
+        return out
+
+    t._transport = recorded
+    try:
+        t.step(observation)
+    finally:
+        del t._transport
+    return (*result["out"], before)
+
+
 @pytest.mark.parametrize("frames_before", [2, 5])
 def test_the_early_stops_last_small_step_is_skipped_with_the_same_decision(frames_before: int) -> None:
     """``skip_last_step``: the transport stops after the same iterations, where the full loop was before its last
@@ -214,27 +244,8 @@ def test_the_early_stops_last_small_step_is_skipped_with_the_same_decision(frame
     skip, full = copy.deepcopy(tr), copy.deepcopy(tr)
     full.svn = replace(full.svn, skip_last_step=False)
     assert skip.svn.skip_last_step
-    before: list[np.ndarray] = []  # the full loop's poses before each of its steps
-    results = {}
-    for name, t in (("skip", skip), ("full", full)):
-        transport = t._transport
-
-        def recorded(max_iters: int, t=t, transport=transport, name=name):
-            move = t.window.move_newest
-            if name == "full":  # on this window only, for the transport only (subsets copy attributes)
-                def recording_move(*args, **kwargs):
-                    before.append(t.window.newest.copy())
-                    return move(*args, **kwargs)
-                t.window.move_newest = recording_move
-            out = transport(max_iters)
-            if name == "full":
-                del t.window.move_newest
-            results[name] = (out[0], t.window.newest.copy(), out[1].copy())
-            return out
-
-        t._transport = recorded
-        t.step(obs(frames_before))
-    (it_s, P_s, v_s), (it_f, P_f, _) = results["skip"], results["full"]
+    it_s, P_s, v_s, _ = _recorded_step(skip, obs(frames_before), moves=False)
+    it_f, P_f, _, before = _recorded_step(full, obs(frames_before), moves=True)  # before each of its steps
     assert it_s == it_f < full.svn.iters_later  # the same decision, by the early stop
     assert len(before) == it_f
     np.testing.assert_array_equal(P_s, before[-1])  # where the full loop was before its last step
@@ -286,30 +297,9 @@ def test_a_step_the_model_predicted_lets_the_next_small_step_stop_the_transport(
     plain.svn = replace(plain.svn, stop_model_tol=0.0)
     saved = 0
     for k in range(frames_before, frames_before + 3):
-        after: list[np.ndarray] = [plain.window.newest.copy()]  # plain's poses after each of its steps
-        results = {}
-        for name, t in (("model", model), ("plain", plain)):
-            transport = t._transport
-
-            def recorded(max_iters: int, t=t, transport=transport, name=name, after=after, results=results):
-                move = t.window.move_newest
-                if name == "plain":  # on this window only, for the transport only (subsets copy attributes)
-                    def recording_move(*args, **kwargs):
-                        out = move(*args, **kwargs)
-                        after.append(t.window.newest.copy())
-                        return out
-                    t.window.move_newest = recording_move
-                    after[0] = t.window.newest.copy()
-                out = transport(max_iters)
-                if name == "plain":
-                    del t.window.move_newest
-                results[name] = (out[0], t.window.newest.copy())
-                return out
-
-            t._transport = recorded
-            t.step(_turning_frame(k, mask=False))
-            del t._transport
-        (it_m, P_m), (it_p, _) = results["model"], results["plain"]
+        it_m, P_m, _, _ = _recorded_step(model, _turning_frame(k, mask=False), moves=False)
+        it_p, P_p, _, before = _recorded_step(plain, _turning_frame(k, mask=False), moves=True)
+        after = before + [P_p]  # plain's poses after 0, 1, ... of its steps
         assert it_m <= it_p
         np.testing.assert_array_equal(P_m, after[it_m - 1])  # it_m linearisations, it_m - 1 steps taken
         saved += it_p - it_m

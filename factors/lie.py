@@ -83,31 +83,36 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
 
 
+#: Shepperd's method divides row ``k`` of this table (``k``: the largest of the four squared components) by ``s``;
+#: its entries index ``[d21, d02, d10, s21, s02, s10, s]`` (``dij = R_ij - R_ji``, ``sij = R_ij + R_ji``), and the
+#: diagonal entry (index 6) is replaced by ``s / 4``.
+_SHEPPERD_ROWS = np.array([[6, 0, 1, 2], [0, 6, 5, 4], [1, 5, 6, 3], [2, 4, 3, 6]])
+_OFF_UPPER = np.array([7, 2, 3])  # R21, R02, R10 in a row-major 3x3 ...
+_OFF_LOWER = np.array([5, 6, 1])  # ... and their transposes R12, R20, R01
+
+
 def rotation_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(..., 3, 3)`` -> unit Hamilton quaternions ``(..., 4)`` as w, x, y, z, w >= 0.
 
     Shepperd's method: pick the largest of the four squared components to divide by, so
-    the result is accurate for every rotation, including angles near pi.
+    the result is accurate for every rotation, including angles near pi. The four candidate quaternions
+    are one table (``_SHEPPERD_ROWS``) gathered per rotation: the same divisions as building all four and
+    selecting one, bit for bit, in a quarter of the NumPy calls (``so3_log`` takes this path near pi).
     """
     R = np.asarray(R, dtype=float)
-    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    Rf = R.reshape(-1, 9)
+    m00, m11, m22 = Rf[:, 0], Rf[:, 4], Rf[:, 8]
     tr = m00 + m11 + m22
     cand = np.stack([1.0 + tr, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], -1)
     k = np.argmax(cand, axis=-1)
-    s = 2.0 * np.sqrt(np.maximum(np.take_along_axis(cand, k[..., None], -1)[..., 0], 1e-300))
-    q = np.empty(R.shape[:-2] + (4,))
-    d21, d02, d10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
-    s21, s02, s10 = R[..., 2, 1] + R[..., 1, 2], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 0] + R[..., 0, 1]
-    c0 = np.stack([0.25 * s, d21 / s, d02 / s, d10 / s], -1)
-    c1 = np.stack([d21 / s, 0.25 * s, s10 / s, s02 / s], -1)
-    c2 = np.stack([d02 / s, s10 / s, 0.25 * s, s21 / s], -1)
-    c3 = np.stack([d10 / s, s02 / s, s21 / s, 0.25 * s], -1)
-    q = np.where((k == 0)[..., None], c0, q)
-    q = np.where((k == 1)[..., None], c1, q)
-    q = np.where((k == 2)[..., None], c2, q)
-    q = np.where((k == 3)[..., None], c3, q)
-    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    n = np.arange(Rf.shape[0])
+    s = 2.0 * np.sqrt(np.maximum(cand[n, k], 1e-300))
+    upper, lower = Rf[:, _OFF_UPPER], Rf[:, _OFF_LOWER]
+    off = np.concatenate((upper - lower, upper + lower, s[:, None]), axis=-1)
+    q = off[n[:, None], _SHEPPERD_ROWS[k]] / s[:, None]
+    q[n, k] = 0.25 * s
+    q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
+    return (q / np.linalg.norm(q, axis=-1, keepdims=True)).reshape(R.shape[:-2] + (4,))
 
 
 def quat_wxyz_to_rotation(q: np.ndarray) -> np.ndarray:

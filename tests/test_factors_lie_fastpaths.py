@@ -11,7 +11,12 @@ import pytest
 
 from factors import lie
 from tests.poses import KINDS, sample_poses
-from tests.reference_lie import se3_exp_reference, se3_log_reference, so3_log_reference
+from tests.reference_lie import (
+    rotation_to_quat_wxyz_reference,
+    se3_exp_reference,
+    se3_log_reference,
+    so3_log_reference,
+)
 
 
 def _tangents(kind: str, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -146,3 +151,27 @@ def test_cross_is_bitwise_the_textbook_formula(kind: str) -> None:
     b[::7] = -0.0  # signed zeros take the same products
     for u, v in ((a, b), (a[0], b), (a, b[3]), (a[5], b[5]), (a.reshape(4, 50, 3), b.reshape(4, 50, 3))):
         assert lie.cross(u, v).tobytes() == _cross_textbook(u, v).tobytes()
+
+
+@pytest.mark.parametrize("kind", ("uniform", "near_identity", "near_pi", "zero", "pi"))
+def test_rotation_to_quat_is_bitwise_the_four_candidate_form(kind: str) -> None:
+    """The table gather of Shepperd's method selects the same divisions as building all four candidates.
+
+    Exactly pi puts the largest component on each of x, y and z in turn (the axes below), near identity on w.
+    """
+    rng = np.random.default_rng(33)
+    if kind == "pi":
+        axis = np.concatenate([np.eye(3), rng.normal(size=(397, 3))])
+        w = axis / np.linalg.norm(axis, axis=1, keepdims=True) * np.pi
+    else:
+        w = _tangents(kind, 400, rng)[:, :3]
+    R = lie.so3_exp(w)
+    largest = np.argmax(np.abs(lie.rotation_to_quat_wxyz(R)), axis=1)
+    if kind in ("uniform", "near_pi", "pi"):
+        assert set(largest) == {0, 1, 2, 3} - ({0} if kind != "uniform" else set())
+    for got, ref in ((lie.rotation_to_quat_wxyz(R), rotation_to_quat_wxyz_reference(R)),
+                     (lie.rotation_to_quat_wxyz(R.reshape(4, 100, 3, 3)),
+                      rotation_to_quat_wxyz_reference(R).reshape(4, 100, 4)),
+                     (lie.rotation_to_quat_wxyz(R[7]), rotation_to_quat_wxyz_reference(R[7]))):
+        assert got.shape == ref.shape
+        assert got.tobytes() == ref.tobytes()

@@ -14,7 +14,15 @@ from pinpoint_fg.observation import Observation
 from pinpoint_fg.posterior.summary import bimodal_from_modes
 from pinpoint_fg.trackers.base import TrackerConfig
 from pinpoint_fg.trackers.svn import FIRST_PRIOR_SIGMA, SvnTracker
-from pinpoint_fg.trackers.svn_modes import SCALE, ModeSettings, basins, laplace_terms, scaled_distance
+from pinpoint_fg.trackers.svn_modes import (
+    SCALE,
+    ModeSettings,
+    _greedy_groups,
+    basins,
+    laplace_terms,
+    rotation_beyond,
+    scaled_distance,
+)
 from pinpoint_fg.window import Linearization, Window
 from tests.test_trackers_svn import CAM, NEEDLE, _ambiguous_scene, _grasper, _mode_shares
 
@@ -483,3 +491,56 @@ def test_scaled_distance_is_bitwise_the_norm_of_the_scaled_tangent() -> None:
         A, B = np.broadcast_arrays(a, b)
         ref = np.linalg.norm(local(A.reshape(-1, 4, 4), B.reshape(-1, 4, 4)) / SCALE, axis=1).reshape(A.shape[:-2])
         assert scaled_distance(a, b).tobytes() == ref.tobytes()
+
+
+def _poses_about_the_grouping_radius(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 4, 4) poses in clusters about a few centres, half of them turned half a turn (the twin), with rotations
+    drawn at 0.5-1.5x the 10 deg grouping radius and some exactly on it to round-off."""
+    centres = se3_exp(rng.normal(size=(3, 6)) * np.array([1.0] * 3 + [0.02] * 3))
+    twin = se3_exp(np.array([np.pi - 1e-4, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.deg2rad(10.0) * rng.choice([rng.uniform(0.5, 1.5), 1.0 + 1e-12, 1.0 - 1e-12], size=n)[:, None]
+    xi = np.concatenate([axis * angle, rng.normal(size=(n, 3)) * 2e-4], axis=1)
+    base = centres[rng.integers(0, 3, size=n)]
+    base = np.where(rng.random(n)[:, None, None] < 0.5, base @ twin, base)
+    return base @ se3_exp(xi)
+
+
+def test_rotation_beyond_rules_out_only_poses_beyond_the_angle() -> None:
+    """Never true for a rotation within the angle (by :func:`local`'s own logarithm), true past it by 1e-5;
+    rotations drawn about each reference at 0-2x the angle, on it to 1e-12 and 1e-6, and near a half turn."""
+    rng = np.random.default_rng(37)
+    angle = np.deg2rad(10.0)
+    for T_a in se3_exp(rng.normal(size=(5, 6)) * np.array([1.0] * 3 + [0.02] * 3)):
+        axis = rng.normal(size=(400, 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        factor = rng.choice([1.0 - 1e-12, 1.0 + 1e-12, 1.0 - 1e-6, 1.0 + 1e-6, np.pi / angle - 1e-3], size=400)
+        factor = np.where(rng.random(400) < 0.5, rng.uniform(0.0, 2.0, size=400), factor)
+        xi = np.concatenate([axis * (angle * factor)[:, None], rng.normal(size=(400, 3)) * 1e-3], axis=1)
+        T_b = T_a @ se3_exp(xi)
+        theta = np.linalg.norm(local(np.broadcast_to(T_a, T_b.shape), T_b)[:, :3], axis=1)
+        beyond = rotation_beyond(T_a[:3, :3], T_b[:, :3, :3], angle)
+        assert not np.any(beyond & (theta <= angle * (1 + 1e-7)))
+        assert np.all(beyond[theta > angle * (1 + 1e-5)])
+        assert beyond.sum() > 100 and (~beyond).sum() > 100
+        assert not rotation_beyond(T_a[:3, :3], T_b[:, :3, :3], np.pi).any()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_greedy_groups_equal_the_plain_loop_over_every_free_pose(seed: int) -> None:
+    """Skipping the logarithms :func:`rotation_beyond` rules out leaves the groups as the plain loop forms them."""
+    rng = np.random.default_rng(40 + seed)
+    P = _poses_about_the_grouping_radius(rng, 50)
+    order = rng.permutation(50)
+    labels_ref, reps_ref = np.full(50, -1), []
+    for i in order:
+        if labels_ref[i] >= 0:
+            continue
+        free = np.flatnonzero(labels_ref < 0)
+        labels_ref[free[scaled_distance(P[i], P[free]) < 2.0]] = len(reps_ref)
+        labels_ref[i] = len(reps_ref)
+        reps_ref.append(int(i))
+    labels, reps = _greedy_groups(P, order, 2.0)
+    assert labels.tolist() == labels_ref.tolist() and reps.tolist() == reps_ref
+    assert len(reps) > 3

@@ -166,6 +166,21 @@ def scaled_distance(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     return np.sqrt(np.add.reduce(x * x, axis=1)).reshape(A.shape[:-2])
 
 
+def rotation_beyond(R_a: np.ndarray, R_b: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Which rotations ``R_b (K, 3, 3)`` lie certainly more than ``angle_rad`` from ``R_a (3, 3)``: ``(K,)`` bool.
+
+    ``cos theta = (tr(R_a^T R_b) - 1) / 2`` from one product; the test keeps a relative margin of 1e-6 on the
+    angle, far above that cosine's round-off. The rotation part of a tangent bounds its scaled norm from below
+    (``|Log(T_a^-1 T_b) / S| >= theta / max(S_rot)``), so
+    :func:`_greedy_groups` skips the logarithms of poses this rules out: the same groups, and no near-pi
+    logarithm (the costliest kind) for a twin mode's poses half a turn away.
+    """
+    bound = angle_rad * (1.0 + 1e-6)
+    if bound >= np.pi:
+        return np.zeros(R_b.shape[0], dtype=bool)
+    return 0.5 * (np.einsum("ij,kij->k", R_a, R_b) - 1.0) < np.cos(bound)
+
+
 def laplace_terms(lin: Linearization, evidence: np.ndarray, max_step: float = 4.0
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Predicted peak step ``d (N, 6)``, peak cost ``m (N,)`` and log-evidence ``log Z (N,)`` (module docstring)."""
@@ -211,6 +226,7 @@ def _greedy_groups(P: np.ndarray, order: np.ndarray | list[int], separation: flo
         if labels[i] >= 0:
             continue
         free = np.flatnonzero(labels < 0)
+        free = free[~rotation_beyond(P[i, :3, :3], P[free, :3, :3], separation * SCALE[:3].max())]
         close = free[scaled_distance(P[i], P[free]) < separation]
         labels[close] = len(reps)
         labels[i] = len(reps)

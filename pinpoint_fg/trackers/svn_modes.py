@@ -222,11 +222,12 @@ def _greedy_groups(P: np.ndarray, order: np.ndarray | list[int], separation: flo
     """
     labels = np.full(P.shape[0], -1)
     reps: list[int] = []
+    radius_rad = separation * SCALE[:3].max()  # the rotation angle no pose of a group can exceed
     for i in order:
         if labels[i] >= 0:
             continue
         free = np.flatnonzero(labels < 0)
-        free = free[~rotation_beyond(P[i, :3, :3], P[free, :3, :3], separation * SCALE[:3].max())]
+        free = free[~rotation_beyond(P[i, :3, :3], P[free, :3, :3], radius_rad)]
         close = free[scaled_distance(P[i], P[free]) < separation]
         labels[close] = len(reps)
         labels[i] = len(reps)

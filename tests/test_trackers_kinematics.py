@@ -50,6 +50,25 @@ def test_elapsed_scale() -> None:
         KinematicsCheckConfig(jump_quantile=1.0)
 
 
+@pytest.mark.parametrize("q", [0.5, 0.9, 0.99, 0.999, 0.9999, 1.0 - 1e-9])
+def test_threshold_is_scipy_stats_chi2_ppf_bit_for_bit(q: float) -> None:
+    from scipy import stats
+
+    assert KinematicsCheckConfig(jump_quantile=q).threshold == float(stats.chi2.ppf(q, 6))
+
+
+def test_tracking_does_not_import_scipy_stats() -> None:
+    # scipy.stats costs ~0.6 s of every command's start-up and of each worker process track spawns
+    import subprocess
+    import sys
+
+    code = "import sys, pinpoint_fg.track, pinpoint_fg.cli; print('scipy.stats' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "False"
+
+
 def test_jump_is_flagged_on_its_frame_and_removed_from_later_poses() -> None:
     run = _sim("kinfault", 300, 1)
     k = run.info.extra["simulator"]["registration_jump"]["frame"]

@@ -201,3 +201,47 @@ def test_fits_run_with_one_blas_thread_whatever_the_callers_pools(monkeypatch: p
     assert free.bimodal and limited.bimodal
     assert (free.bic1, free.bic2, free.ashman_d) == (limited.bic1, limited.bic2, limited.ashman_d)
     assert np.array_equal(free.means, limited.means) and np.array_equal(free.covariances, limited.covariances)
+
+
+@pytest.mark.parametrize("case", ["one", "two", "overlap", "weighted", "thinned"])
+def test_fits_without_scikit_learns_checks_are_those_with_them_bit_for_bit(
+        case: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The verdict's fits skip scikit-learn's input and parameter checks (``config_context``); with the checks on
+    (the context made a no-op) every fitted number is the same."""
+    import contextlib
+
+    import sklearn
+
+    rng = np.random.default_rng(["one", "two", "overlap", "weighted", "thinned"].index(case))
+    weights = None
+    if case == "one":
+        P = cloud(rng, 50, np.zeros(6), 1.0)
+    elif case == "two":
+        P = np.concatenate([cloud(rng, 25, np.zeros(6), 0.7), cloud(rng, 25, FAR, 0.7)])
+    elif case == "overlap":
+        P = np.concatenate([cloud(rng, 30, np.zeros(6), 1.0), cloud(rng, 20, FAR / 5, 1.0)])
+    elif case == "weighted":
+        P = np.concatenate([cloud(rng, 200, np.zeros(6), 1.0), cloud(rng, 100, FAR, 1.0)])
+        weights = rng.random(300)
+    else:
+        P = np.concatenate([cloud(rng, 1500, np.zeros(6), 1.0), cloud(rng, 600, FAR, 1.0)])
+    from sklearn.mixture import GaussianMixture
+
+    skipped: list[bool] = []
+    fit = GaussianMixture.fit
+
+    def spy(self, X, y=None):  # scikit-learn's signature
+        skipped.append(sklearn.get_config()["skip_parameter_validation"])
+        return fit(self, X, y)
+
+    monkeypatch.setattr(GaussianMixture, "fit", spy)
+    fast = assess_bimodality(P, T_MAP, weights=weights, seed=3)
+    monkeypatch.setattr(sklearn, "config_context", lambda **_: contextlib.nullcontext())
+    checked = assess_bimodality(P, T_MAP, weights=weights, seed=3)
+    assert skipped == [True, True, False, False]  # the two paths differ in the checks, as meant
+    assert (fast.bimodal, fast.reason, fast.dominant, fast.n_fit_points) == (
+        checked.bimodal, checked.reason, checked.dominant, checked.n_fit_points)
+    assert (fast.bic1, fast.bic2, fast.ashman_d, fast.minor_weight) == (
+        checked.bic1, checked.bic2, checked.ashman_d, checked.minor_weight)
+    for a, b in ((fast.means, checked.means), (fast.covariances, checked.covariances), (fast.weights, checked.weights)):
+        assert np.array_equal(a, b)

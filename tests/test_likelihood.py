@@ -87,6 +87,13 @@ def test_term_losses_are_the_parts_of_the_robust_loss_and_each_matches_its_gtsam
     np.testing.assert_array_equal(loss, full[0])
     np.testing.assert_array_equal(e, full[1])
     np.testing.assert_array_equal(lik.nll(poses), full[0] + lik.cheirality(poses)[0])
+    # nll is gauss_newton's nll bit for bit (the seeding scores its last trial by nll alone), also where the
+    # cheirality penalty is on (poses too near or behind the camera)
+    near = poses.copy()
+    near[:4, 2, 3] = [1e-3, 0.0, -0.02, 2e-3]
+    fresh = FrameLikelihood(_obs(T, np.random.default_rng(1)), MeasurementModel(CAM, NEEDLE, NoiseConfig(), Switches()))
+    np.testing.assert_array_equal(lik.nll(near), fresh.gauss_newton(near)[0])
+    assert np.all(lik.cheirality(near)[0][:3] > 0)
     fs = lik.gtsam_factors(0)  # tip, tail, one robust factor per conic pixel, grasp position, perpendicularity
     assert len(fs) == 4 + 30
     groups = {"tip": fs[:1], "tail": fs[1:2], "conic": fs[2:-2], "grasp_position": fs[-2:-1],

@@ -11,11 +11,10 @@ from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
 from factors.lie import se3_log as se3_log_of
 from factors.robust import RobustLoss
-from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches
+from pinpoint_fg.likelihood import FrameLikelihood, MeasurementModel, Switches, batched_gauss_newton, batched_nll
 from pinpoint_fg.noise import ROBUST_RESIDUALS, NoiseConfig, ResidualNoise, parse_robust_spec
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.trackers.base import implausible
-from pinpoint_fg.trackers.pf import batched_nll
 from tests.fd import numerical_jacobian
 
 CAM = PinholeCamera(900.0, 900.0, 539.5, 539.5, 1080, 1080)
@@ -119,6 +118,13 @@ def test_robust_lowers_the_nll_and_reaches_pf_weights_and_implausibility() -> No
     many = T0 @ se3_exp(rng.normal(size=(7000, 6)) * np.r_[[0.05] * 3, [5e-4] * 3])
     # default batches: NLL_BATCH_ENTRIES residual entries (here 2631 rows of 38 entries: three batches)
     np.testing.assert_allclose(batched_nll(rob, many), batched_nll(rob, many, chunk=128), rtol=1e-13)
+    # the Gauss-Newton model in batches (the seeding's 1440 candidates): each row as evaluated alone, to round-off
+    whole = FrameLikelihood(obs, rob.model).gauss_newton(many[:1500])
+    default = batched_gauss_newton(rob, many[:1500])  # GN_BATCH_ENTRIES: 657 rows of 38 entries, three batches
+    for batches in (default, batched_gauss_newton(rob, many[:1500], chunk=7)):
+        for a, b in zip(batches, whole, strict=True):
+            assert a.shape == b.shape
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9 * np.max(np.abs(b)))
     # implausibility: the same statement (every block 5 sigma off) in the robust loss's units
     assert plain.loss_at_rms(5.0) == pytest.approx(0.5 * 25.0 * plain.dim, rel=1e-12)
     thr = rob.loss_at_rms(5.0)

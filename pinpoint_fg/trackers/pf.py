@@ -40,32 +40,10 @@ import numpy as np
 from factors.lie import se3_exp
 from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.init import seed_particles
-from pinpoint_fg.likelihood import FrameLikelihood
+from pinpoint_fg.likelihood import NLL_BATCH_ENTRIES, FrameLikelihood, batched_nll  # noqa: F401 - pf's names before
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible, summarize
 from pinpoint_fg.window import RANDOM_WALK_SIGMA
-
-#: Residual entries per batch when evaluating the likelihood (particles x the frame's residual dimension): the
-#: likelihood-only path builds no Jacobian, and its largest temporaries are a few times this size. Measured on
-#: normal-01 (3000 particles, thread CPU, ``batched_nll`` alone): 128 rows per batch cost 4.4 ms on a frame without
-#: a mask and 20.8 ms with ~200 backbone pixels; the whole batch 1.8 / 33.6 ms; ~500 rows 2.3 / 18.8 ms.
-NLL_BATCH_ENTRIES = 100_000
-
-
-def batched_nll(lik: FrameLikelihood, cam_T_needle: np.ndarray, chunk: int | None = None) -> np.ndarray:
-    """``lik.nll`` of ``(N, 4, 4)`` poses in batches of ``chunk`` (default: ``NLL_BATCH_ENTRIES`` residual entries,
-    all the particles on a frame without a mask, ~500 with ~200 backbone pixels); non-finite values become
-    ``+inf``. Shape (N,). Rows are evaluated independently: the batch size changes round-off only (BLAS may block
-    a larger product differently; 5e-13 nats on 91 of 3000 rows of one frame of normal-01, the rest bitwise)."""
-    if chunk is None:
-        chunk = max(1, NLL_BATCH_ENTRIES // max(lik.dim, 1))
-    T = np.asarray(cam_T_needle, dtype=float)
-    n = T.shape[0]
-    if n <= chunk:
-        out = lik.nll(T)
-    else:
-        out = np.concatenate([lik.nll(T[i : i + chunk]) for i in range(0, n, chunk)])
-    return np.where(np.isfinite(out), out, np.inf)
 
 
 def normalize_log_weights(log_w: np.ndarray) -> np.ndarray:

@@ -128,6 +128,30 @@ def suggested_disable(run: str | Path | Recording) -> tuple[str, ...]:
     return tuple(value)
 
 
+def suggestion_note(recording: Recording, disable: tuple[str, ...] | list[str]) -> str | None:
+    """The ``note:`` line ``track`` prints when the recording asks to be tracked without switches (recording.json
+    ``suggested_disable``) that ``disable`` keeps on; None otherwise.
+
+    Decision: ``track`` does not apply the suggestion itself. The model is what the command line says, and a
+    key outside the recording format (the simulator writes it: the ``symmetric`` scenario's grasp factors) must not
+    change it silently. But neither should it be ignored silently: ``demo`` and ``benchmark`` honour it, so without
+    the note a user's ``track`` of such a run scored another model than the benchmark's, with nothing to say so.
+    A malformed key gets no note (``track`` does not use it; ``suggested_disable`` refuses it where it is used).
+    """
+    try:
+        wanted = suggested_disable(recording)
+    except InputError:
+        return None
+    missing = [name for name in wanted if name not in disable]
+    if not missing:
+        return None
+    every = ",".join(dict.fromkeys([*disable, *wanted]))
+    them = "them" if len(missing) > 1 else "it"
+    return (f"note: {recording.root / 'recording.json'} suggests tracking without {', '.join(missing)} "
+            f"(\"suggested_disable\", which demo and benchmark follow); this run keeps {them} (track applies only "
+            f"--disable): add --disable {every} to follow it")
+
+
 def _thread_limit(threads: int | None) -> AbstractContextManager:
     """Context limiting the process's BLAS / OpenMP pools to ``threads`` (None: no change)."""
     if threads is None:
@@ -266,6 +290,9 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
     if not frames:
         raise InputError("the recording has no frames", file=Path(run) / "frames.csv")
     for note in recording_notes(recording, frames):
+        print(note, file=sys.stderr)
+    note = suggestion_note(recording, disable)
+    if note is not None:
         print(note, file=sys.stderr)
     settings = tracker.settings()
     # absolute, as the recording's path: `evaluate` reads it back from any directory (relative, it found another

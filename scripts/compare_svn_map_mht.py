@@ -6,10 +6,10 @@ Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR [--methods svn
 ``--runs 'snapshots-0[1-8]'`` keeps the runs whose names match a glob; ``--methods svn`` scores one method (``pf``
 and ``svgd`` are accepted too), e.g. to compare two trees by running this from each with ``PYTHONPATH`` set to it;
 ``--robust`` sets the robust losses as ``track --robust`` does, e.g. ``conic=cauchy:3,grasp-perpendicular=huber:1.345``,
-the default before the twenty-third round, against today's). Each run is tracked as ``track`` would (the
-recording's ``suggested_disable``, seed 0), one method after the other, in this process; "kept" = some particle
-within 2 mm / 10 deg of the truth, "bimodal" = the modes verdict (second mode >= 0.1). Last, per scenario (a run's
-name without its ``-SEED`` suffix, as ``pinpoint-fg simulate`` names runs) and method, the means of those columns
+the default before the twenty-third round, against today's). Each run is tracked as ``track`` would with the recording's
+``suggested_disable`` given as ``--disable`` (seed 0), one method after the other, in this process; "kept" = some
+particle within 2 mm / 10 deg of the truth, "bimodal" = the modes verdict (second mode >= 0.1). Last, per scenario (a
+run's name without its ``-SEED`` suffix, as ``pinpoint-fg simulate`` names runs) and method, the means of those columns
 over the scenario's runs.
 """
 

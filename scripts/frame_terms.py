@@ -3,7 +3,8 @@
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/frame_terms.py RUN [--frames 12]
 [--every 1]``, e.g. ``/tmp/runs/drive-08`` (``pinpoint-fg simulate --scenario drive --frames 150 --seed 8``).
 
-SVN and MAP (default settings, the run's suggested switches, seed 0: what ``track`` runs) are stepped in turn
+SVN and MAP (default settings, the run's suggested switches, seed 0: what ``track`` runs with the
+``--disable`` its note suggests) are stepped in turn
 through the first ``--frames`` frames. For every ``--every``-th frame it prints each tracker's rotation error
 and, at SVN's pose, MAP's pose and the ground truth, each term's robust cost in nats
 (:meth:`pinpoint_fg.likelihood.FrameLikelihood.term_losses`; the motion prior is not included). Last, the

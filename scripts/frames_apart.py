@@ -5,10 +5,10 @@ Usage: ``.venv/bin/python scripts/frames_apart.py RUN RESULT [RESULT ...] [--bey
 
 Prints per result its mean rotation error over all frames and from ``--from-frame`` on, and the frames where its
 error exceeds ``--beyond-deg``; then, for every such frame of any result, each result's pose's negative log-likelihood
-under that frame's measurements alone (``FrameLikelihood.nll`` with the run's suggested switches, as ``track`` tracks
-it; no motion prior) next to the truth's. A lower value for a pose far from the truth means the frame itself prefers
-the wrong mode: a tracker that picks it follows the model, and one that does not is held back by its history or
-its start.
+under that frame's measurements alone (``FrameLikelihood.nll`` with the run's suggested switches, as ``track`` tracks it
+with the ``--disable`` its note suggests; no motion prior) next to the truth's. A lower value for a pose far from the
+truth means the frame itself prefers the wrong mode: a tracker that picks it follows the model, and one that does not is
+held back by its history or its start.
 """
 
 from __future__ import annotations

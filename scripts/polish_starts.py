@@ -3,7 +3,8 @@
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/polish_starts.py RUN FRAME [FRAME ...]
 [--polish 30]``, e.g. ``/tmp/bench/runs/drive-01 57``.
 
-SVN (default settings, N = 50, L = 1, the run's suggested switches, seed 0 -- what ``track`` runs) is stepped
+SVN (default settings, N = 50, L = 1, the run's suggested switches, seed 0 -- what ``track`` runs with the
+``--disable`` its note suggests) is stepped
 through the run. At each FRAME the inputs of its settle (:func:`pinpoint_fg.trackers.svn_modes.settle`: the window
 after transport, its linearisation, the modes) are copied, and every member of the best mode is polished on its
 own window for ``--polish`` Levenberg-Marquardt steps. Printed per member, by current cost: its window's cost now,

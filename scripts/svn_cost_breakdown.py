@@ -2,8 +2,8 @@
 
 Usage: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_cost_breakdown.py RUN [--particles 50] [--window 1]
 [--frames mask|nomask|all] [--relin 0.5]`` (RUN e.g. from ``pinpoint-fg simulate --scenario normal --frames 150
---seed 1``). The run is tracked without the switches it suggests (``suggested_disable``), as ``demo`` and
-``benchmark`` track it.
+--seed 1``). The run is tracked with the factors it asks to switch off switched off (``suggested_disable``: the
+grasp factors on symmetric), as ``track``, ``demo`` and ``benchmark`` track it.
 Each part is wrapped with a thread-CPU timer (nested calls of one part are counted once; parts overlap:
 ``linearize`` inside the polish is also in ``polish``). CPU time of this thread, so other load on the machine
 matters less than for wall time. Slower than an unwrapped run by the wrappers' own cost (~1 %).

@@ -8,14 +8,13 @@ several fields comma-separated with JSON lists of values: ``modes.polish_iters,m
 ``kinematic_bias`` takes ``null`` or a :class:`~pinpoint_fg.kinematic_bias.BiasModel` as a JSON object,
 ``'{"tau_s": 5, "white_share": 0.3}'``). ``--window L``: both trackers smooth over L frames (default 1).
 
-Both trackers are stepped in turn on every frame (lock-step, one thread: load on the machine hits both alike),
-with the run's suggested switches (``track``'s own). Prints per run the median thread-CPU milliseconds per frame
-over all, no-mask and mask frames (from frame 10 on: the first frames run more iterations), the MAP pose's mean
-translation (mm) and rotation (deg) errors, the share of frames where a particle is within 2 mm / 10 deg of the
-truth (``kept``) and the modes verdict (second mode >= 0.1, ``bim``), all over the frames with ground truth, and
-the ratio B / A of the CPU medians; last, the ratio of the summed per-run medians. The ambiguous scenarios
-(symmetric, snapshots, drive) are chaotic: a change of round-off alone moves their errors, so judge accuracy over
-several seeds.
+Both trackers are stepped in turn on every frame (lock-step, one thread: load on the machine hits both alike), with the
+run's suggested switches (``demo``'s and ``benchmark``'s; ``track`` notes them). Prints per run the median thread-CPU
+milliseconds per frame over all, no-mask and mask frames (from frame 10 on: the first frames run more iterations), the
+MAP pose's mean translation (mm) and rotation (deg) errors, the share of frames where a particle is within 2 mm / 10 deg
+of the truth (``kept``) and the modes verdict (second mode >= 0.1, ``bim``), all over the frames with ground truth, and
+the ratio B / A of the CPU medians; last, the ratio of the summed per-run medians. The ambiguous scenarios (symmetric,
+snapshots, drive) are chaotic: a change of round-off alone moves their errors, so judge accuracy over several seeds.
 
 ``--reference RESULT ...``: MHT results of the same runs (matched by ``result.json``'s ``recording_name``, e.g.
 ``/tmp/bench29/results/snapshots/mht``): each run with one then also prints, per setting, the modes verdict's rate

@@ -3,7 +3,8 @@
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/window_optima.py RUN OTHER_RESULT FRAME
 [FRAME ...] [--polish 20]``, e.g. ``/tmp/bench/runs/drive-01 /tmp/bench/results/drive/mht 57 58``.
 
-SVN (default settings, N = 50, L = 1, the run's suggested switches, seed 0 -- what ``track`` runs) is stepped
+SVN (default settings, N = 50, L = 1, the run's suggested switches, seed 0 -- what ``track`` runs with the
+``--disable`` its note suggests) is stepped
 through the run. At each FRAME, after its step, the window of SVN's MAP hypothesis is evaluated at three newest
 poses: SVN's own, ``OTHER_RESULT``'s estimate of that frame, and the ground truth. Each is then polished on that
 window (``--polish`` Levenberg-Marquardt steps, :func:`pinpoint_fg.trackers.svn_modes.polish`). Printed per pose:

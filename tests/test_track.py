@@ -236,3 +236,34 @@ def test_the_ignored_masks_note_survives_a_run_stopped_later(run: Path, tmp_path
         track_recording(noisy, "map", tmp_path / "out", progress=False, max_frames=12)
     notes = [line for line in capsys.readouterr().err.splitlines() if "the masks of" in line]
     assert len(notes) == 1 and f"frame {first['frame']}, {first['mask']}" in notes[0]
+
+
+def test_track_notes_the_switches_the_recording_suggests_and_applies_only_its_own(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A run whose recording.json suggests switches off (the simulator's symmetric scenario): ``track`` prints one
+    note naming them and the flag that follows it, tracks with its own --disable, and is silent once they are off."""
+    import json
+
+    run = tmp_path / "sym"
+    assert main(["simulate", "--scenario", "symmetric", "--frames", "3", "--seed", "1", "--out", str(run)]) == 0
+    capsys.readouterr()
+    assert main(["track", str(run), "--method", "map", "--out", str(tmp_path / "a")]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "suggested_disable" in line]
+    assert notes == [f"note: {run / 'recording.json'} suggests tracking without grasp-position, grasp-perpendicular "
+                     "(\"suggested_disable\", which demo and benchmark follow); this run keeps them (track applies "
+                     "only --disable): add --disable grasp-position,grasp-perpendicular to follow it"]
+    assert json.loads((tmp_path / "a" / "result.json").read_text())["settings"]["disabled"] == []
+    assert main(["track", str(run), "--method", "map", "--disable", "tip,grasp-position", "--out",
+                 str(tmp_path / "b")]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "suggested_disable" in line]
+    assert len(notes) == 1 and "without grasp-perpendicular (" in notes[0] and "keeps it " in notes[0]
+    assert notes[0].endswith("add --disable tip,grasp-position,grasp-perpendicular to follow it")
+    assert main(["track", str(run), "--method", "map", "--disable", "grasp-position,grasp-perpendicular", "--out",
+                 str(tmp_path / "c")]) == 0
+    assert "suggested_disable" not in capsys.readouterr().err
+    # a malformed key (outside the recording format; track does not use it) neither stops the run nor gets a note
+    info = json.loads((run / "recording.json").read_text())
+    info["suggested_disable"] = "grasp-position"
+    (run / "recording.json").write_text(json.dumps(info))
+    assert main(["track", str(run), "--method", "map", "--out", str(tmp_path / "d")]) == 0
+    assert "suggested_disable" not in capsys.readouterr().err

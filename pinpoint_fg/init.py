@@ -193,14 +193,16 @@ def polish(lik: FrameLikelihood, T: np.ndarray, iters: int) -> tuple[np.ndarray,
         A = Hf + lam[:, None, None] * diag[:, :, None] * np.eye(6)
         step = -np.linalg.solve(A, g[..., None])[..., 0]
         Tn = T @ se3_exp(step)
-        if k == iters - 1:
+        last = k == iters - 1
+        if last:
             nll_n = batched_nll(lik, Tn)
-            better = nll_n < nll
-            return np.where(better[:, None, None], Tn, T), np.where(better, nll_n, nll)
-        nll_n, g_n, H_n = batched_gauss_newton(lik, Tn)
+        else:
+            nll_n, g_n, H_n = batched_gauss_newton(lik, Tn)
         better = nll_n < nll
         T = np.where(better[:, None, None], Tn, T)
         nll = np.where(better, nll_n, nll)
+        if last:
+            break
         g = np.where(better[:, None], g_n, g)
         H = np.where(better[:, None, None], H_n, H)
         lam = np.where(better, lam * 0.3, lam * 10.0)

@@ -534,6 +534,13 @@ def _store(f: FrameLikelihood, key: bytes, result: tuple[np.ndarray, np.ndarray,
     f._gn_memo = (key, result)
 
 
+def _batches(lik: FrameLikelihood, T: np.ndarray, entries: int, chunk: int | None) -> list[np.ndarray]:
+    """``T (N, 4, 4)`` cut into consecutive batches of ``chunk`` poses (default: ``entries`` residual entries of
+    ``lik``'s frame); one batch (``T`` itself) when it fits."""
+    rows = max(1, entries // max(lik.dim, 1)) if chunk is None else chunk
+    return [T] if T.shape[0] <= rows else [T[i : i + rows] for i in range(0, T.shape[0], rows)]
+
+
 #: Residual entries per batch when evaluating the likelihood of many poses (poses x the frame's residual dimension):
 #: the likelihood-only path builds no Jacobian, and its largest temporaries are a few times this size; batches that
 #: stay in the cache beat one pass over arrays of tens of MB. Measured on normal-01 (3000 particles, thread CPU,
@@ -547,14 +554,9 @@ def batched_nll(lik: FrameLikelihood, cam_T_needle: np.ndarray, chunk: int | Non
     all the particles on a frame without a mask, ~500 with ~200 backbone pixels); non-finite values become
     ``+inf``. Shape (N,). Rows are evaluated independently: the batch size changes round-off only (BLAS may block
     a larger product differently; 5e-13 nats on 91 of 3000 rows of one frame of normal-01, the rest bitwise)."""
-    if chunk is None:
-        chunk = max(1, NLL_BATCH_ENTRIES // max(lik.dim, 1))
     T = np.asarray(cam_T_needle, dtype=float)
-    n = T.shape[0]
-    if n <= chunk:
-        out = lik.nll(T)
-    else:
-        out = np.concatenate([lik.nll(T[i : i + chunk]) for i in range(0, n, chunk)])
+    parts = [lik.nll(b) for b in _batches(lik, T, NLL_BATCH_ENTRIES, chunk)]
+    out = parts[0] if len(parts) == 1 else np.concatenate(parts)
     return np.where(np.isfinite(out), out, np.inf)
 
 
@@ -575,11 +577,7 @@ def batched_gauss_newton(lik: FrameLikelihood, cam_T_needle: np.ndarray, chunk: 
     the batch size changes round-off only, as in :func:`batched_nll` (``tests/test_likelihood_robust.py``). ``lik``'s
     memo then holds the last batch, not the whole set: the seeding evaluates each candidate set once.
     """
-    T = res.as_pose_batch(cam_T_needle)
-    if chunk is None:
-        chunk = max(1, GN_BATCH_ENTRIES // max(lik.dim, 1))
-    n = T.shape[0]
-    if n <= chunk:
-        return lik.gauss_newton(T)
-    parts = [lik.gauss_newton(T[i : i + chunk]) for i in range(0, n, chunk)]
+    parts = [lik.gauss_newton(b) for b in _batches(lik, res.as_pose_batch(cam_T_needle), GN_BATCH_ENTRIES, chunk)]
+    if len(parts) == 1:
+        return parts[0]
     return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]

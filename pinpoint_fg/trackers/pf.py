@@ -40,7 +40,7 @@ import numpy as np
 from factors.lie import se3_exp
 from pinpoint_fg.estimate import Estimate
 from pinpoint_fg.init import seed_particles
-from pinpoint_fg.likelihood import NLL_BATCH_ENTRIES, FrameLikelihood, batched_nll  # noqa: F401 - pf's names before
+from pinpoint_fg.likelihood import FrameLikelihood, batched_nll
 from pinpoint_fg.observation import Observation
 from pinpoint_fg.trackers.base import Tracker, TrackerConfig, implausible, summarize
 from pinpoint_fg.window import RANDOM_WALK_SIGMA

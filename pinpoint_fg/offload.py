@@ -144,13 +144,19 @@ def _done(fut: Future | None) -> bool:
 
 
 class Offload:
-    """Observations and result rows of a run, inline (``workers = 0``) or in spawned processes: one observer and
-    ``workers`` for the rows.
+    """Observations and result rows of a run, inline (``workers = 0``) or in spawned processes: ``workers`` for the
+    rows, which with one worker also observes, and with more an observer of its own.
 
     Computed inline, the GMM fits (20-30 ms a frame) and mask frames (~10 ms) made ``track`` take
-    2x the step latencies it reported. Observations get their own process because they are on the
-    tracker's path and rows are not: queued behind GMM fits on a busy machine, most of them were
-    not ready in time and were made inline. The workers are started at construction, so they import
+    2x the step latencies it reported. With two or more row workers the observations get a process of their own:
+    they are on the tracker's path and rows are not, and queued behind GMM fits most of them were not ready in time
+    and were made inline. With one worker (``pinpoint-fg track``'s default) they share it all the same: on two cores
+    a third process cost more than it saved. Starting a worker (interpreter, imports) takes ~0.5 s of CPU, the
+    row worker's scikit-learn ~0.6-0.9 s more, on a core the two workers shared while the tracker held the other;
+    measured with fresh processes alternated (the twenty-ninth round, ``experiments.latency.track_wall``), one
+    process for both took ``track``'s wall on normal-01 from 2.79-3.04 s to 2.24-2.68 s over 100 frames (8 of 8
+    pairs faster) and from 9.49-9.82 s to 8.56-9.16 s over 500 frames (3 of 3), although more observations are
+    then made inline. The workers are started at construction, so they import
     while the tracking process reads the recording (the observer is then sent it, not read twice;
     the row workers load scikit-learn: started with the first row instead, or with the first
     observation, a row worker began up to ~25 frames behind on a busy machine and the last rows were
@@ -170,12 +176,16 @@ class Offload:
             before = set(threading.enumerate())
 
             ctx = mp.get_context("spawn")
-            self.observer = ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),))
-            self.observer.submit(os.getpid)  # processes start on the first submit: start it now
             self.pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
                                             initargs=(os.getpid(),))
             for _ in range(workers):
                 self.pool.submit(_warm_up)
+            if workers == 1:
+                self.observer = self.pool
+            else:
+                self.observer = ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init,
+                                                    initargs=(os.getpid(),))
+                self.observer.submit(os.getpid)  # processes start on the first submit: start it now
             # the pools' manager threads (started by the first submit; their queue feeders are daemons), for
             # join_stopped_workers: found without the executors' private attributes
             self._managers = [t for t in threading.enumerate() if t not in before and not t.daemon]
@@ -230,7 +240,7 @@ class Offload:
         """Stop the workers. After a failure wait for them; after success do not: every row is out, and their
         exit (interpreter clean-up, ~0.3 s) overlaps whatever the caller does next (an interpreter joins them
         at exit; :func:`join_stopped_workers` joins them earlier, as the command line does)."""
-        for pool in (self.observer, self.pool):
+        for pool in {id(p): p for p in (self.observer, self.pool)}.values():
             if pool is not None:
                 pool.shutdown(wait=failed, cancel_futures=True)
         _STOPPING.extend(t for t in self._managers if t.is_alive())

@@ -187,9 +187,10 @@ def track_recording(
     ``out`` must be new or empty unless ``overwrite`` (:func:`pinpoint_fg.io.outdir.prepare_output_dir`);
     it is checked before the recording is read, so a refused ``out`` costs nothing. An ``out`` this call created is
     removed again if the call fails before writing anything into it.
-    ``verdict_workers`` processes observe frames ahead of the tracker and summarise each frame (GMM verdict,
-    modes) behind it (:class:`~pinpoint_fg.offload.Offload`; 0: all inline, same files; ``pinpoint-fg track``
-    uses 1; the worker is spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
+    ``verdict_workers`` processes summarise each frame (GMM verdict, modes) behind the tracker and observe frames
+    ahead of it (one worker does both, more get an observer process of their own:
+    :class:`~pinpoint_fg.offload.Offload`; 0: all inline, same files; ``pinpoint-fg track`` uses 1; the workers are
+    spawned, so a calling script needs the usual ``if __name__ == "__main__":`` guard).
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults; ``conic_correlation_px`` likewise the backbone residuals' correlation length
     along the arc (:mod:`factors.conic_correlation`; 0: independent pixels, the default). ``conic_distance``:

@@ -145,7 +145,8 @@ def test_everything_falls_back_inline_when_the_workers_die(run: Path) -> None:
     recording = read_recording(run)
     offload = Offload(1, 200)
     try:
-        for pool in (offload.observer, offload.pool):
+        assert offload.observer is offload.pool  # one worker: one process observes and makes rows
+        for pool in (offload.pool,):
             dead = pool.submit(os._exit, 3)  # the worker process dies: the pool is broken
             assert isinstance(dead.exception(), BrokenExecutor)
         got = list(offload.observations(recording, recording.frames))
@@ -163,6 +164,36 @@ def test_everything_falls_back_inline_when_the_workers_die(run: Path) -> None:
         assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))
     assert [r.frame for r in rows] == [e.frame for e in ests]
     assert [r.extra for r in rows] == [to_frame_estimate(e).extra for e in ests]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_one_worker_process_observes_and_makes_rows_more_get_an_observer_of_their_own(run: Path,
+                                                                                      workers: int) -> None:
+    """With one worker the observer is the row worker (one process to start beside the tracker, not two); with more,
+    the observer is a process of its own (``_keep``'s copy of the recording lives in one process). Either way the
+    observations and rows equal the inline ones."""
+    recording = read_recording(run)
+    offload = Offload(workers, 200)
+    try:
+        assert (offload.observer is offload.pool) == (workers == 1)
+        pids = {offload.pool.submit(os.getpid).result() for _ in range(8)}
+        pids |= {offload.observer.submit(os.getpid).result()}
+        assert len(pids) <= workers + (workers > 1)
+        got = list(offload.observations(recording, recording.frames))
+        tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
+        ests = [tracker.step(o) for o in got]
+        for e in ests:
+            offload.submit(e)
+        rows = offload.ready(wait=True)
+    finally:
+        offload.close(failed=False)
+    for rec, obs in zip(recording.frames, got, strict=True):
+        here = observe_frame(recording, rec, max_points=200)
+        assert obs.frame == here.frame and np.array_equal(obs.tip_px, here.tip_px)
+        x, y = obs.backbone_px, here.backbone_px
+        assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))
+    assert [r.frame for r in rows] == [e.frame for e in ests]
+    assert [r.bimodal for r in rows] == [to_frame_estimate(e).bimodal for e in ests]
 
 
 def test_the_command_line_returns_after_the_worker_pools_it_stopped_have_shut_down(run: Path, tmp_path: Path) -> None:

@@ -134,25 +134,38 @@ TRACK_REPEATS = 3
 1.12 to 1.44 between runs of the same code on an idle machine: a worker process starts beside it)."""
 
 
+def _timed_track(run: Path, dest: Path, frames: int | None) -> tuple[float, float]:
+    """One :func:`~pinpoint_fg.track.track_recording` of svn as ``pinpoint-fg track`` runs it (one verdict worker):
+    ``(wall seconds, sum of its step latencies in seconds)``. Run in a fresh process by :func:`track_wall`."""
+    from pinpoint_fg.io.result.reader import read_result
+    from pinpoint_fg.track import track_recording
+
+    t0 = time.perf_counter()
+    track_recording(run, "svn", dest, progress=False, max_frames=frames, verdict_workers=1)
+    wall = time.perf_counter() - t0
+    return wall, float(np.sum(read_result(dest).latency_ms)) / 1e3
+
+
 def track_wall(run: Path, out: Path, frames: int | None, repeats: int = TRACK_REPEATS) -> dict:
     """``pinpoint-fg track``'s wall time over the sum of its step latencies, ``repeats`` times (under ``out/repeat-K``).
 
     The ratio says what ``track`` costs beyond the steps it reports: reading and observing frames, the
-    bimodality verdicts (a worker process), the mode summary and writing. Returns the median run's
-    ``wall_s``, ``step_sum_s`` and ``ratio``, and every run's ``ratios`` (in run order).
+    bimodality verdicts (a worker process), the mode summary and writing. Each run is timed in a fresh (spawned)
+    process, as a command-line run is: timed in this process, every run after the first found scikit-learn loaded
+    here (the first run's end, or the accuracy part before, had imported it), so the end of the run made the
+    workers' backlog here at no import cost, which a command-line run never can (*Twenty-ninth round* in
+    docs/measurement-log.md). The process's own start-up, before ``track_recording`` is called, is not timed.
+    Returns the median run's ``wall_s``, ``step_sum_s`` and ``ratio``, and every run's ``ratios`` (in run order).
     """
-    from pinpoint_fg.io.result.reader import read_result
-    from pinpoint_fg.track import track_recording
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
 
     if repeats < 1:
         raise InputError(f"must be >= 1, got {repeats}", column="track_repeats")
     runs = []
     for k in range(1, repeats + 1):
-        dest = out / f"repeat-{k}"
-        t0 = time.perf_counter()
-        track_recording(run, "svn", dest, progress=False, max_frames=frames, verdict_workers=1)
-        wall = time.perf_counter() - t0
-        step_sum = float(np.sum(read_result(dest).latency_ms)) / 1e3
+        with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
+            wall, step_sum = pool.submit(_timed_track, Path(run), out / f"repeat-{k}", frames).result()
         runs.append({"wall_s": wall, "step_sum_s": step_sum, "ratio": wall / step_sum})
     median = sorted(runs, key=lambda r: r["ratio"])[(len(runs) - 1) // 2]
     return {**median, "ratios": [r["ratio"] for r in runs]}

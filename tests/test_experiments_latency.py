@@ -35,3 +35,24 @@ def test_lockstep_tracks_with_the_recordings_suggested_switches_unless_told(
         assert {name for name, attr in on.items() if not getattr(switches, attr)} == set(expected)
     assert sorted(res.disabled) == sorted(expected)
     assert res.latency_ms["svn"].shape == (3,) and res.latency_ms["map"].shape == (3,)
+
+
+def test_track_wall_times_each_run_in_a_fresh_process(tmp_path: Path) -> None:
+    """Each run of ``track_wall`` is a command-line-like ``track`` in a process of its own: this process neither
+    tracks nor loads what a run loads (scikit-learn for the verdicts), so no run finds it loaded by the one before."""
+    import sys
+
+    from pinpoint_fg.experiments import latency
+    from pinpoint_fg.io.result.reader import read_result
+
+    run = simulate("normal", 8, 2, out=tmp_path / "run")
+    loaded_before = "sklearn.mixture" in sys.modules
+    res = latency.track_wall(run, tmp_path / "wall", frames=6, repeats=2)
+    assert ("sklearn.mixture" in sys.modules) == loaded_before
+    assert len(res["runs"]) == 2 and res["ratios"] == [r["ratio"] for r in res["runs"]]
+    for k, r in enumerate(res["runs"], start=1):
+        assert r["ratio"] == pytest.approx(r["wall_s"] / r["step_sum_s"]) and r["wall_s"] > 0
+        got = read_result(tmp_path / "wall" / f"repeat-{k}")
+        assert list(got.frame) == list(range(6)) and got.complete
+    with pytest.raises(latency.InputError):
+        latency.track_wall(run, tmp_path / "none", frames=6, repeats=0)

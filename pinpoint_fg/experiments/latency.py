@@ -155,7 +155,8 @@ def track_wall(run: Path, out: Path, frames: int | None, repeats: int = TRACK_RE
     here (the first run's end, or the accuracy part before, had imported it), so the end of the run made the
     workers' backlog here at no import cost, which a command-line run never can (*Twenty-ninth round* in
     docs/measurement-log.md). The process's own start-up, before ``track_recording`` is called, is not timed.
-    Returns the median run's ``wall_s``, ``step_sum_s`` and ``ratio``, and every run's ``ratios`` (in run order).
+    Returns the median run's ``wall_s``, ``step_sum_s`` and ``ratio``, every run's ``ratios`` and every run's
+    ``runs`` (``wall_s``, ``step_sum_s``, ``ratio``), in run order.
     """
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
@@ -168,7 +169,7 @@ def track_wall(run: Path, out: Path, frames: int | None, repeats: int = TRACK_RE
             wall, step_sum = pool.submit(_timed_track, Path(run), out / f"repeat-{k}", frames).result()
         runs.append({"wall_s": wall, "step_sum_s": step_sum, "ratio": wall / step_sum})
     median = sorted(runs, key=lambda r: r["ratio"])[(len(runs) - 1) // 2]
-    return {**median, "ratios": [r["ratio"] for r in runs]}
+    return {**median, "ratios": [r["ratio"] for r in runs], "runs": runs}
 
 
 def latency_tables(runs: dict[str, Path], frames: int | None, grid_run: Path | None, grid_frames: int | None,

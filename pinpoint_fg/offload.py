@@ -240,7 +240,8 @@ class Offload:
         """Stop the workers. After a failure wait for them; after success do not: every row is out, and their
         exit (interpreter clean-up, ~0.3 s) overlaps whatever the caller does next (an interpreter joins them
         at exit; :func:`join_stopped_workers` joins them earlier, as the command line does)."""
-        for pool in {id(p): p for p in (self.observer, self.pool)}.values():
+        # one worker observes too: the same pool, shut down once
+        for pool in (self.pool,) if self.observer is self.pool else (self.observer, self.pool):
             if pool is not None:
                 pool.shutdown(wait=failed, cancel_futures=True)
         _STOPPING.extend(t for t in self._managers if t.is_alive())

@@ -20,6 +20,7 @@ import pytest
 from threadpoolctl import threadpool_info
 
 from pinpoint_fg.io.recording.reader import read_recording
+from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.observe import observe_frame
 from pinpoint_fg.offload import Offload, _keep, _observe, _worker_init, to_frame_estimate
@@ -139,6 +140,27 @@ def test_track_leaves_the_callers_thread_pools_alone(run: Path, tmp_path: Path) 
     assert [(p["filepath"], p["num_threads"]) for p in threadpool_info()][: len(before)] == before
 
 
+def _track_through(offload: Offload, recording: Recording) -> tuple[list, list, list]:
+    """Observe every frame through ``offload``, track them with a 12-particle svn, queue the estimates and wait for
+    their rows: ``(observations, estimates, rows)``."""
+    got = list(offload.observations(recording, recording.frames))
+    tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
+    ests = [tracker.step(o) for o in got]
+    for e in ests:
+        offload.submit(e)
+    return got, ests, offload.ready(wait=True)
+
+
+def _assert_as_inline(recording: Recording, got: list, ests: list, rows: list) -> None:
+    """The observations are the inline ones (frames, backbones) and the rows come in the estimates' order."""
+    for rec, obs in zip(recording.frames, got, strict=True):
+        here = observe_frame(recording, rec, max_points=200)
+        assert obs.frame == here.frame
+        x, y = obs.backbone_px, here.backbone_px
+        assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))
+    assert [r.frame for r in rows] == [e.frame for e in ests]
+
+
 def test_everything_falls_back_inline_when_the_workers_die(run: Path) -> None:
     """Dead workers (broken pools) only cost time: every observation and row is then made in this process, equal to
     the inline ones, and in order."""
@@ -146,23 +168,12 @@ def test_everything_falls_back_inline_when_the_workers_die(run: Path) -> None:
     offload = Offload(1, 200)
     try:
         assert offload.observer is offload.pool  # one worker: one process observes and makes rows
-        for pool in (offload.pool,):
-            dead = pool.submit(os._exit, 3)  # the worker process dies: the pool is broken
-            assert isinstance(dead.exception(), BrokenExecutor)
-        got = list(offload.observations(recording, recording.frames))
-        tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
-        ests = [tracker.step(o) for o in got]
-        for e in ests:
-            offload.submit(e)
-        rows = offload.ready(wait=True)
+        dead = offload.pool.submit(os._exit, 3)  # the worker process dies: the pool is broken
+        assert isinstance(dead.exception(), BrokenExecutor)
+        got, ests, rows = _track_through(offload, recording)
     finally:
         offload.close(failed=True)
-    for rec, obs in zip(recording.frames, got, strict=True):
-        here = observe_frame(recording, rec, max_points=200)
-        assert obs.frame == here.frame
-        x, y = obs.backbone_px, here.backbone_px
-        assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))
-    assert [r.frame for r in rows] == [e.frame for e in ests]
+    _assert_as_inline(recording, got, ests, rows)
     assert [r.extra for r in rows] == [to_frame_estimate(e).extra for e in ests]
 
 
@@ -179,20 +190,12 @@ def test_one_worker_process_observes_and_makes_rows_more_get_an_observer_of_thei
         pids = {offload.pool.submit(os.getpid).result() for _ in range(8)}
         pids |= {offload.observer.submit(os.getpid).result()}
         assert len(pids) <= workers + (workers > 1)
-        got = list(offload.observations(recording, recording.frames))
-        tracker = make_tracker("svn", tracker_config(recording, "svn", particles=12))
-        ests = [tracker.step(o) for o in got]
-        for e in ests:
-            offload.submit(e)
-        rows = offload.ready(wait=True)
+        got, ests, rows = _track_through(offload, recording)
     finally:
         offload.close(failed=False)
-    for rec, obs in zip(recording.frames, got, strict=True):
-        here = observe_frame(recording, rec, max_points=200)
-        assert obs.frame == here.frame and np.array_equal(obs.tip_px, here.tip_px)
-        x, y = obs.backbone_px, here.backbone_px
-        assert (x is None) == (y is None) and (x is None or np.array_equal(x, y))
-    assert [r.frame for r in rows] == [e.frame for e in ests]
+    _assert_as_inline(recording, got, ests, rows)
+    assert all(np.array_equal(o.tip_px, observe_frame(recording, r, max_points=200).tip_px)
+               for o, r in zip(got, recording.frames, strict=True))
     assert [r.bimodal for r in rows] == [to_frame_estimate(e).bimodal for e in ests]
 
 

@@ -56,3 +56,17 @@ def test_track_wall_times_each_run_in_a_fresh_process(tmp_path: Path) -> None:
         assert list(got.frame) == list(range(6)) and got.complete
     with pytest.raises(latency.InputError):
         latency.track_wall(run, tmp_path / "none", frames=6, repeats=0)
+
+
+def test_track_wall_reports_each_process_cpu_and_the_bound_no_schedule_beats(tmp_path: Path) -> None:
+    """The CPU split says whether ``track``'s wall is bound by work or by its schedule: the worker's CPU (its
+    start-up, with scikit-learn, and the verdicts) is counted, and the bound follows from the two figures."""
+    from pinpoint_fg.experiments import latency
+
+    run = simulate("normal", 8, 2, out=tmp_path / "run")
+    res = latency.track_wall(run, tmp_path / "wall", frames=8, repeats=1)
+    (r,) = res["runs"]
+    # a spawned worker that imports scikit-learn and fits mixtures cannot cost less than a tenth of a second
+    assert r["cpu_worker_s"] > 0.1 and r["cpu_tracker_s"] > 0
+    assert r["cpu_bound"] == pytest.approx(max(r["cpu_tracker_s"], (r["cpu_tracker_s"] + r["cpu_worker_s"]) / 2)
+                                           / r["step_sum_s"])

@@ -134,16 +134,30 @@ TRACK_REPEATS = 3
 1.12 to 1.44 between runs of the same code on an idle machine: a worker process starts beside it)."""
 
 
-def _timed_track(run: Path, dest: Path, frames: int | None) -> tuple[float, float]:
+def _timed_track(run: Path, dest: Path, frames: int | None) -> tuple[float, float, float, float]:
     """One :func:`~pinpoint_fg.track.track_recording` of svn as ``pinpoint-fg track`` runs it (one verdict worker):
-    ``(wall seconds, sum of its step latencies in seconds)``. Run in a fresh process by :func:`track_wall`."""
+    ``(wall seconds, sum of its step latencies, CPU seconds of this process during the call, CPU seconds of the
+    worker process)``. Run in a fresh process by :func:`track_wall`; the worker's CPU is read once it has exited
+    (after the wall time is taken), from this process's reaped children (the worker and multiprocessing's tiny
+    resource tracker, whose CPU is a few milliseconds)."""
+    import multiprocessing as mp
+    import resource
+
     from pinpoint_fg.io.result.reader import read_result
+    from pinpoint_fg.offload import join_stopped_workers
     from pinpoint_fg.track import track_recording
 
+    c0 = time.process_time()
     t0 = time.perf_counter()
     track_recording(run, "svn", dest, progress=False, max_frames=frames, verdict_workers=1)
     wall = time.perf_counter() - t0
-    return wall, float(np.sum(read_result(dest).latency_ms)) / 1e3
+    cpu_tracker = time.process_time() - c0
+    join_stopped_workers()  # the worker pool has shut down and its process has been waited for
+    for child in mp.active_children():  # any child still running (none expected) is waited for too
+        child.join()
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (wall, float(np.sum(read_result(dest).latency_ms)) / 1e3, cpu_tracker,
+            children.ru_utime + children.ru_stime)
 
 
 def track_wall(run: Path, out: Path, frames: int | None, repeats: int = TRACK_REPEATS) -> dict:
@@ -155,8 +169,14 @@ def track_wall(run: Path, out: Path, frames: int | None, repeats: int = TRACK_RE
     here (the first run's end, or the accuracy part before, had imported it), so the end of the run made the
     workers' backlog here at no import cost, which a command-line run never can (*Twenty-ninth round* in
     docs/measurement-log.md). The process's own start-up, before ``track_recording`` is called, is not timed.
-    Returns the median run's ``wall_s``, ``step_sum_s`` and ``ratio``, every run's ``ratios`` and every run's
-    ``runs`` (``wall_s``, ``step_sum_s``, ``ratio``), in run order.
+
+    Each run also reports the CPU seconds of the tracking process (``cpu_tracker_s``) and of its worker
+    (``cpu_worker_s``: start-up, scikit-learn's import, verdicts, observations) and ``cpu_bound``, the wall / steps
+    that work would take spread perfectly over two cores, ``max(cpu_tracker, (cpu_tracker + cpu_worker) / 2) /
+    steps``. A ratio near the bound is limited by the work, one far above it by the schedule. (The worker's figure
+    includes its exit after the last row, outside the wall, ~0.1 s: the bound can sit a little above a run.)
+    Returns the median run's ``wall_s``, ``step_sum_s``, ``ratio``, ``cpu_tracker_s``, ``cpu_worker_s`` and
+    ``cpu_bound``, every run's ``ratios`` and every run's ``runs`` (the same keys), in run order.
     """
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
@@ -166,8 +186,11 @@ def track_wall(run: Path, out: Path, frames: int | None, repeats: int = TRACK_RE
     runs = []
     for k in range(1, repeats + 1):
         with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
-            wall, step_sum = pool.submit(_timed_track, Path(run), out / f"repeat-{k}", frames).result()
-        runs.append({"wall_s": wall, "step_sum_s": step_sum, "ratio": wall / step_sum})
+            wall, step_sum, cpu_tracker, cpu_worker = pool.submit(_timed_track, Path(run), out / f"repeat-{k}",
+                                                                  frames).result()
+        bound = max(cpu_tracker, (cpu_tracker + cpu_worker) / 2) / step_sum
+        runs.append({"wall_s": wall, "step_sum_s": step_sum, "ratio": wall / step_sum, "cpu_tracker_s": cpu_tracker,
+                     "cpu_worker_s": cpu_worker, "cpu_bound": bound})
     median = sorted(runs, key=lambda r: r["ratio"])[(len(runs) - 1) // 2]
     return {**median, "ratios": [r["ratio"] for r in runs], "runs": runs}
 
@@ -221,7 +244,9 @@ def latency_tables(runs: dict[str, Path], frames: int | None, grid_run: Path | N
         each = " / ".join(f"{r:.2f}" for r in t["ratios"])
         lines += ["", f"pinpoint-fg track (svn, {Path(grid_run).name}, {len(t['ratios'])} runs): wall / steps = "
                       f"{t['ratio']:.2f} (median; each run {each}; reading, verdicts, writing included); "
-                      f"median run: wall {t['wall_s']:.2f} s, sum of step latencies {t['step_sum_s']:.2f} s"]
+                      f"median run: wall {t['wall_s']:.2f} s, sum of step latencies {t['step_sum_s']:.2f} s; CPU: "
+                      f"tracking process {t['cpu_tracker_s']:.2f} s, worker {t['cpu_worker_s']:.2f} s: spread "
+                      f"perfectly over 2 cores, wall / steps {t['cpu_bound']:.2f}"]
     return data, "\n".join(lines)
 
 

@@ -150,6 +150,9 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     # track's wall / steps is the median of three runs, each kept
     assert len(lat["track"]["ratios"]) == 3 and lat["track"]["ratio"] == sorted(lat["track"]["ratios"])[1]
     assert all((tmp_path / "bench" / "track-svn" / f"repeat-{k}" / "estimates.csv").is_file() for k in (1, 2, 3))
+    # with the CPU of its two processes and the ratio that work bounds it to
+    assert lat["track"]["cpu_worker_s"] > 0 and lat["track"]["cpu_bound"] > 0
+    assert "spread perfectly over 2 cores" in (tmp_path / "bench" / "latency.txt").read_text()
     assert "SVN cost vs particles N and window L" in capsys.readouterr().out
 
 

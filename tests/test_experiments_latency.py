@@ -58,7 +58,7 @@ def test_track_wall_times_each_run_in_a_fresh_process(tmp_path: Path) -> None:
         latency.track_wall(run, tmp_path / "none", frames=6, repeats=0)
 
 
-def test_track_wall_reports_each_process_cpu_and_the_bound_no_schedule_beats(tmp_path: Path) -> None:
+def test_track_wall_reports_each_process_cpu_and_the_bound_their_work_gives(tmp_path: Path) -> None:
     """The CPU split says whether ``track``'s wall is bound by work or by its schedule: the worker's CPU (its
     start-up, with scikit-learn, and the verdicts) is counted, and the bound follows from the two figures."""
     from pinpoint_fg.experiments import latency

@@ -137,10 +137,8 @@ TRACK_REPEATS = 3
 def _timed_track(run: Path, dest: Path, frames: int | None) -> tuple[float, float, float, float]:
     """One :func:`~pinpoint_fg.track.track_recording` of svn as ``pinpoint-fg track`` runs it (one verdict worker):
     ``(wall seconds, sum of its step latencies, CPU seconds of this process during the call, CPU seconds of the
-    worker process)``. Run in a fresh process by :func:`track_wall`; the worker's CPU is read once it has exited
-    (after the wall time is taken), from this process's reaped children (the worker and multiprocessing's tiny
-    resource tracker, whose CPU is a few milliseconds)."""
-    import multiprocessing as mp
+    worker process)``. Run in a fresh process by :func:`track_wall`; the worker's CPU is read once its pool has shut
+    down and joined it (after the wall time is taken), from this process's reaped children."""
     import resource
 
     from pinpoint_fg.io.result.reader import read_result
@@ -152,9 +150,7 @@ def _timed_track(run: Path, dest: Path, frames: int | None) -> tuple[float, floa
     track_recording(run, "svn", dest, progress=False, max_frames=frames, verdict_workers=1)
     wall = time.perf_counter() - t0
     cpu_tracker = time.process_time() - c0
-    join_stopped_workers()  # the worker pool has shut down and its process has been waited for
-    for child in mp.active_children():  # any child still running (none expected) is waited for too
-        child.join()
+    join_stopped_workers()  # the pool's manager thread joins the worker process: its CPU is counted below
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
     return (wall, float(np.sum(read_result(dest).latency_ms)) / 1e3, cpu_tracker,
             children.ru_utime + children.ru_stime)

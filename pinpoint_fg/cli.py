@@ -17,6 +17,9 @@ from pinpoint_fg.io.jsonfile import INT64_MAX
 METHODS = ("svn", "svgd", "pf", "map", "mht")
 SWITCHES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")
 SCENARIOS = ("slow", "normal", "rotation", "suturing", "calibration", "symmetric", "drive", "kinfault", "snapshots")
+#: ``simulate --geometry`` choices (:data:`pinpoint_fg.sim.config.GEOMETRIES`; named here so ``--help`` imports no
+#: simulator).
+GEOMETRIES = ("paper", "held-out")
 OVERWRITE_HELP = "write into a non-empty --out (replacing what this command writes there)"
 
 
@@ -149,10 +152,12 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     check_output_dir(args.out, args.overwrite, "simulated run")  # created by simulate, whole or not at all
     config = None
-    if args.mask_spurs:
-        from pinpoint_fg.sim.config import SimConfig
+    if args.mask_spurs or args.geometry != "paper":
+        from dataclasses import replace
 
-        config = SimConfig(mask_spur_prob=args.mask_spurs)
+        from pinpoint_fg.sim.config import geometry_config
+
+        config = replace(geometry_config(args.geometry), mask_spur_prob=args.mask_spurs)
     out = simulate(args.scenario, n_frames=args.frames, seed=args.seed, out=args.out, images=args.images,
                    config=config)
     print(f"wrote {out}")
@@ -282,7 +287,8 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     if args.quick:
         frames, grid = min(frames, 150), min(grid or frames, 100)
     run_benchmark(out=args.out, frames=frames, seed=args.seed, jobs=args.jobs, grid_frames=grid,
-                  overwrite=args.overwrite, unseen_seeds=tuple(args.unseen_seeds))
+                  overwrite=args.overwrite, unseen_seeds=tuple(args.unseen_seeds),
+                  held_out_geometry=args.held_out_geometry)
     return 0
 
 
@@ -433,6 +439,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--images", action="store_true", help="also render camera images with the checkerboard")
     s.add_argument("--mask-spurs", type=_probability, default=0.0, metavar="P",
                    help="probability of a 20-35 px spur (skeleton outlier) per mask (default 0)")
+    s.add_argument("--geometry", choices=GEOMETRIES, default="paper",
+                   help="camera and needle: the paper's (1080x1080 px, 3/8 circle, r 4.5 mm; default) or a held-out "
+                        "pair no default was tuned on (1280x1024 px, stronger distortion, 1/2 circle, r 5.5 mm)")
     s.set_defaults(func=_cmd_simulate)
 
     s = sub.add_parser("groundtruth", help="gt_* columns from the checkerboard in the run's images")
@@ -541,6 +550,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quick", action="store_true", help="150 frames per scenario, 100 in the N x L grid")
     s.add_argument("--unseen-seeds", type=_seed, nargs="+", default=[], metavar="SEED",
                    help="also track every scenario on these seeds with svn, pf, map and mht; means over them")
+    s.add_argument("--held-out-geometry", action="store_true",
+                   help="also track every scenario simulated with the held-out camera and needle (`simulate "
+                        "--geometry held-out`) on the benchmark's seed and the unseen seeds, with svn, pf, map and mht")
     s.set_defaults(func=_cmd_benchmark)
 
     _add_bag_parsers(sub)

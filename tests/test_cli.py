@@ -112,12 +112,24 @@ def test_demo_and_benchmark_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "accuracy floor" in out and "svn" in out and "map" in out
     assert (tmp_path / "demo" / "report" / "summary.csv").exists()
     assert main(["benchmark", "--frames", "6", "--out", str(tmp_path / "bench"), "--jobs", "2",
-                 "--unseen-seeds", "3"]) == 0
+                 "--unseen-seeds", "3", "--held-out-geometry"]) == 0
     unseen = (tmp_path / "bench" / "unseen.txt").read_text()
     per_method, unseen_ratios = unseen.split("\n\n")
     assert per_method.count("\n") + 1 == 2 + len(BENCH_SCENARIOS) * 4 and " pf " in per_method
     assert "trans/mht" in unseen_ratios and unseen_ratios.strip().count("\n") == 1 + len(BENCH_SCENARIOS)
     assert (tmp_path / "bench" / "seed-3" / "results" / "snapshots" / "mht" / "estimates.csv").exists()
+    # the held-out camera and needle, on the benchmark's seed and the unseen one, laid out as unseen.txt
+    held = (tmp_path / "bench" / "held_out.txt").read_text()
+    held_methods, held_ratios = held.split("\n\n")
+    assert held.startswith("Held-out camera and needle, seeds 1, 3: means over the seeds")
+    assert held_methods.count("\n") + 1 == 2 + len(BENCH_SCENARIOS) * 4
+    assert held_ratios.strip().count("\n") == 1 + len(BENCH_SCENARIOS)
+    held_rows = (tmp_path / "bench" / "held_out.csv").read_text().strip().splitlines()
+    assert len(held_rows) == 1 + 2 * len(BENCH_SCENARIOS) * 4
+    for k in (1, 3):
+        doc = json.loads((tmp_path / "bench" / f"held-out-seed-{k}" / "runs" / f"drive-0{k}" / "recording.json")
+                         .read_text())
+        assert doc["camera"]["width"] == 1280 and doc["needle"]["tip_angle_rad"] == pytest.approx(np.pi)
     cover = (tmp_path / "bench" / "coverage.txt").read_text()  # fitted on seed 3, scored on seed 1
     cover_rows = (tmp_path / "bench" / "coverage.csv").read_text().strip().splitlines()[1:]
     assert cover.startswith("q95 coverage")
@@ -172,6 +184,32 @@ def test_simulate_new_scenarios_and_suggested_disable(tmp_path: Path) -> None:
     (tmp_path / "drive" / "recording.json").write_text(json.dumps(doc))
     with pytest.raises(InputError, match="suggested_disable"):
         suggested_disable(tmp_path / "drive")
+
+
+def test_simulate_held_out_geometry_and_track_it(tmp_path: Path) -> None:
+    """`simulate --geometry held-out` writes a run with the other camera and 1/2-circle needle; `track` reads them
+    from the recording and tracks it as well as a run of the paper's geometry."""
+    from pinpoint_fg import cli
+    from pinpoint_fg.eval.metrics import pose_errors
+    from pinpoint_fg.io.recording import read_recording
+    from pinpoint_fg.io.result.reader import read_result
+    from pinpoint_fg.sim.config import GEOMETRIES, held_out_camera
+
+    assert cli.GEOMETRIES == GEOMETRIES
+    run = tmp_path / "held-out"
+    assert main(["simulate", "--scenario", "normal", "--frames", "10", "--seed", "4", "--geometry", "held-out",
+                 "--mask-spurs", "0.5", "--out", str(run)]) == 0
+    rec = read_recording(run)
+    assert rec.info.camera == held_out_camera()
+    assert rec.info.extra["simulator"]["config"]["mask_spur_prob"] == 0.5  # both options apply
+    assert main(["track", str(run), "--method", "svn", "--out", str(tmp_path / "svn")]) == 0
+    res = read_result(tmp_path / "svn")
+    err = pose_errors(res.cam_T_needle, np.stack([f.cam_T_needle_gt for f in rec.frames]))
+    # the held-out runs' full-length SVN errors are ~0.2 mm / 2 deg (README, Results); 10 frames from a cold start
+    assert np.mean(err.trans_m) < 1.5e-3 and np.degrees(np.mean(err.rot_rad)) < 10.0, (err.trans_m, err.rot_rad)
+    with pytest.raises(SystemExit) as exc:  # an unknown geometry is a usage error (argparse: exit 2)
+        main(["simulate", "--geometry", "fisheye", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2 and not (tmp_path / "x").exists()
 
 
 def test_output_to_a_closed_pipe_is_not_a_traceback(runs: dict[str, Path]) -> None:

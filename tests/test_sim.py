@@ -16,7 +16,7 @@ from factors.lie import se3_inverse
 from factors.residuals import conic_residual, motion_residual
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.observe import backbone_from_mask
-from pinpoint_fg.sim.config import SimConfig
+from pinpoint_fg.sim.config import GEOMETRIES, SimConfig, geometry_config, held_out_camera, held_out_needle
 from pinpoint_fg.sim.kinematics import (
     draw_kinematic_errors,
     frame_difference_std,
@@ -31,8 +31,8 @@ CFG = SimConfig()
 
 
 @cache
-def _run(scenario: str, n: int, seed: int) -> SimRun:
-    return simulate_frames(scenario, n, seed)
+def _run(scenario: str, n: int, seed: int, geometry: str = "paper") -> SimRun:
+    return simulate_frames(scenario, n, seed, config=geometry_config(geometry))
 
 
 def _chi2_std_bounds(n: float, p: float = 1e-3) -> tuple[float, float]:
@@ -277,9 +277,11 @@ def _mask_pixels(m: np.ndarray) -> np.ndarray:
     return np.stack([u, v], axis=1).astype(float)
 
 
-@pytest.mark.parametrize(("scenario", "seed"), [("normal", 0), ("suturing", 1), ("rotation", 0)])
-def test_masks_lie_on_the_projected_visible_arc(scenario: str, seed: int) -> None:
-    r = _run(scenario, 300, seed)
+@pytest.mark.parametrize(("scenario", "seed", "geometry"), [("normal", 0, "paper"), ("suturing", 1, "paper"),
+                                                          ("rotation", 0, "paper"), ("normal", 1, "held-out"),
+                                                          ("suturing", 2, "held-out")])
+def test_masks_lie_on_the_projected_visible_arc(scenario: str, seed: int, geometry: str) -> None:
+    r = _run(scenario, 300, seed, geometry)
     cam = r.config.camera
     bound_extra = 4.0 * (CFG.mask_centreline_sigma_px + CFG.mask_edge_sigma_px) + 1.0
     n_blobs = 0
@@ -291,7 +293,7 @@ def test_masks_lie_on_the_projected_visible_arc(scenario: str, seed: int) -> Non
             blob |= b.contains(pix, pad_px=1.5)
             n_blobs += 1
         depth = r.cam_T_needle[k, 2, 3]
-        hw_max = 0.5 * CFG.needle.wire_diameter_m * cam.fx / (depth - CFG.needle.radius_m)
+        hw_max = 0.5 * r.config.needle.wire_diameter_m * cam.fx / (depth - r.config.needle.radius_m)
         dist, _ = cKDTree(line).query(pix[~blob])
         assert dist.max() < max(hw_max, CFG.mask_min_half_width_px) + bound_extra, (k, dist.max())
         # and the mask covers the visible arc: nearly every centre-line sample is near a mask pixel
@@ -396,6 +398,34 @@ def _tree_equal(a: Path, b: Path) -> bool:
     if fa != fb:
         return False
     return all(filecmp.cmp(a / p, b / p, shallow=False) for p in fa)
+
+
+def test_held_out_geometry_is_recorded_and_observed_through_its_own_camera(tmp_path: Path) -> None:
+    assert GEOMETRIES == ("paper", "held-out") and geometry_config("paper") == CFG
+    with pytest.raises(ValueError, match="valid geometries: paper, held-out"):
+        geometry_config("fisheye")
+    cfg = geometry_config("held-out")
+    assert cfg.camera != CFG.camera and cfg.needle != CFG.needle
+    assert math.isclose(cfg.needle.tip_angle_rad - cfg.needle.tail_angle_rad, math.pi)  # a 1/2 circle
+    # the recording carries the held-out camera and needle, so a tracker reading it uses them
+    rec = read_recording(simulate("normal", 12, 3, out=tmp_path / "run", config=cfg))
+    assert rec.info.camera == held_out_camera() and rec.info.needle == held_out_needle()
+    assert rec.info.extra["simulator"]["config"]["camera"]["width"] == 1280
+    # keypoints are the held-out needle's ends seen through the held-out lens (noise: ~1 px, Table I)
+    mem = _run("normal", 12, 3, "held-out")
+    nd, cam = cfg.needle, cfg.camera
+    for f in rec.frames:
+        for name, angle in (("tip_px", nd.tip_angle_rad), ("tail_px", nd.tail_angle_rad)):
+            seen = getattr(f, name)
+            if seen is None:
+                continue
+            true_px, _ = project_arc(cam, f.cam_T_needle_gt, nd, np.array([angle]))
+            assert np.linalg.norm(seen - true_px[0]) < 6.0, (f.frame, name)
+            np.testing.assert_array_equal(seen, getattr(mem.frames[f.frame], name))
+    # the paper's camera would put those ends elsewhere: the lens is not the default's
+    f0 = rec.frames[0]
+    paper_px, _ = project_arc(CFG.camera, f0.cam_T_needle_gt, nd, np.array([nd.tail_angle_rad]))
+    assert np.linalg.norm(paper_px[0] - f0.tail_px) > 20.0
 
 
 def test_simulate_is_deterministic_and_seeds_differ(tmp_path: Path) -> None:

@@ -15,9 +15,12 @@ from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
+
+if TYPE_CHECKING:
+    from pinpoint_fg.sim.config import SimConfig
 
 
 @dataclass(frozen=True)
@@ -123,10 +126,13 @@ def run_tracking(jobs: list[TrackJob], workers: int, desc: str = "tracking") -> 
     return seconds
 
 
-def simulate_runs(scenarios: tuple[str, ...], frames: int, seed: int, root: Path) -> dict[str, Path]:
+def simulate_runs(scenarios: tuple[str, ...], frames: int, seed: int, root: Path,
+                  config: SimConfig | None = None) -> dict[str, Path]:
+    """Simulate each scenario at ``seed`` into ``root/runs/<scenario>-<seed>`` (``config``: the simulator's
+    settings, default the paper's geometry and noise); returns the run directories by scenario."""
     from pinpoint_fg.sim.scenarios import simulate
 
     runs = {}
     for sc in scenarios:
-        runs[sc] = simulate(sc, n_frames=frames, seed=seed, out=root / "runs" / f"{sc}-{seed:02d}")
+        runs[sc] = simulate(sc, n_frames=frames, seed=seed, out=root / "runs" / f"{sc}-{seed:02d}", config=config)
     return runs

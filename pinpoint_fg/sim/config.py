@@ -38,8 +38,8 @@ def held_out_camera() -> PinholeCamera:
 
 
 def held_out_needle() -> NeedleModel:
-    """A second needle: a 1/2 circle of radius 5.5 mm (a 17 mm half-circle taper point, e.g. an RB-1's size class)
-    grasped 60 degrees from the tail (a third of the arc, not the 3/8 needle's middle), wire 0.45 mm."""
+    """A second needle: a 1/2 circle of radius 5.5 mm (a half circle of ~17 mm, e.g. an RB-1's size class) grasped
+    60 degrees from the tail (a third of the way along, as the default 3/8 needle is), wire 0.45 mm."""
     return NeedleModel(radius_m=0.0055, tail_angle_rad=0.0, tip_angle_rad=math.pi, grasp_angle_rad=math.pi / 3.0,
                        wire_diameter_m=0.00045)
 

@@ -113,8 +113,7 @@ def unseen_table(rows: list[dict], seeds: tuple[int, ...], title: str = "Unseen 
             lines.append(f"{sc:<12} {m:<6} {mean(rs, 'trans_mean_mm'):8.2f} {mean(rs, 'rot_mean_deg'):8.1f} "
                          f"{_pct(mean(rs, 'truth_kept_particles_share'), 6)} "
                          f"{_pct(mean(rs, 'bimodal_modes_share'), 8)}  {per_seed}")
-    lines += ["", f"SVN's mean errors over MAP's and MHT's, {title[0].lower() + title[1:]} {seeds_txt} (means over the "
-              "seeds)",
+    lines += ["", f"SVN's mean errors over MAP's and MHT's, {title.lower()} {seeds_txt} (means over the seeds)",
               "scenario     trans/map  rot/map  trans/mht  rot/mht"]
     for sc in BENCH_SCENARIOS:
         sv, mp, mh = (by.get((sc, m), []) for m in ("svn", "map", "mht"))

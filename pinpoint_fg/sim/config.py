@@ -9,6 +9,7 @@ choice otherwise; each field says which. Noise models are described in
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 from factors.geometry import NeedleModel, PinholeCamera
@@ -54,17 +55,17 @@ def held_out_config() -> SimConfig:
     return SimConfig(camera=held_out_camera(), needle=held_out_needle())
 
 
-#: Geometries ``pinpoint-fg simulate --geometry`` offers: the paper's camera and 3/8 needle, or the held-out pair.
-GEOMETRIES = ("paper", "held-out")
+#: ``pinpoint-fg simulate --geometry`` choices and their settings: the paper's camera and 3/8 needle, or the held-out
+#: pair.
+_GEOMETRY_CONFIGS: dict[str, Callable[[], SimConfig]] = {"paper": lambda: SimConfig(), "held-out": held_out_config}
+GEOMETRIES = tuple(_GEOMETRY_CONFIGS)
 
 
 def geometry_config(name: str) -> SimConfig:
     """The :class:`SimConfig` of a geometry of :data:`GEOMETRIES` (``ValueError`` for another name)."""
-    if name == "paper":
-        return SimConfig()
-    if name == "held-out":
-        return held_out_config()
-    raise ValueError(f"unknown geometry {name!r}; valid geometries: {', '.join(GEOMETRIES)}")
+    if name not in _GEOMETRY_CONFIGS:
+        raise ValueError(f"unknown geometry {name!r}; valid geometries: {', '.join(GEOMETRIES)}")
+    return _GEOMETRY_CONFIGS[name]()
 
 
 def _positive(name: str, value: float) -> None:

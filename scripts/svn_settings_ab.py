@@ -3,7 +3,8 @@
 Usage: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/svn_settings_ab.py FIELD VALUE_A VALUE_B
 RUN [RUN ...] [--reference RESULT ...]`` (e.g. ``floor_each true false /tmp/runs/normal-01``; FIELD is an
 :class:`~pinpoint_fg.trackers.svn.SvnSettings` field, or ``modes.NAME`` for a
-:class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one; the values are parsed as JSON: ``true``, ``2``, ``0.5``;
+:class:`~pinpoint_fg.trackers.svn_modes.ModeSettings` one, or ``init.NAME`` for an
+:class:`~pinpoint_fg.init.InitConfig` one (the seeding's); the values are parsed as JSON: ``true``, ``2``, ``0.5``;
 several fields comma-separated with JSON lists of values: ``modes.polish_iters,modes.max_candidates [8,6] [30,19]``;
 ``kinematic_bias`` takes ``null`` or a :class:`~pinpoint_fg.kinematic_bias.BiasModel` as a JSON object,
 ``'{"tau_s": 5, "white_share": 0.3}'``). ``--window L``: both trackers smooth over L frames (default 1).
@@ -34,6 +35,7 @@ import numpy as np
 
 from pinpoint_fg.eval.metrics import pose_errors
 from pinpoint_fg.eval.modes import near_truth, reference_rates
+from pinpoint_fg.init import InitConfig
 from pinpoint_fg.io.jsonfile import load_json
 from pinpoint_fg.io.recording import read_recording
 from pinpoint_fg.io.result import read_modes
@@ -45,8 +47,9 @@ from pinpoint_fg.trackers.svn import SvnSettings, SvnTracker
 from pinpoint_fg.trackers.svn_modes import ModeSettings
 
 
-def _with(field: str, value: object) -> SvnSettings:
-    """The default settings with ``field`` set to ``value``; ``modes.NAME`` sets a :class:`ModeSettings` field.
+def _with(field: str, value: object) -> tuple[SvnSettings, InitConfig]:
+    """The default settings with ``field`` set to ``value``; ``modes.NAME`` sets a :class:`ModeSettings` field,
+    ``init.NAME`` an :class:`~pinpoint_fg.init.InitConfig` one (the seeding's).
 
     Several fields at once: ``field`` comma-separated and ``value`` a JSON list of as many values.
     """
@@ -54,11 +57,13 @@ def _with(field: str, value: object) -> SvnSettings:
     values = value if len(names) > 1 else [value]
     if not isinstance(values, list) or len(values) != len(names):
         raise SystemExit(f"{field}: give a JSON list of {len(names)} values, got {value!r}")
-    top = {n: v for n, v in zip(names, values, strict=True) if not n.startswith("modes.")}
+    top = {n: v for n, v in zip(names, values, strict=True) if not n.startswith(("modes.", "init."))}
     if isinstance(top.get("kinematic_bias"), dict):  # {"tau_s": 5, "white_share": 0.3}
         top["kinematic_bias"] = BiasModel(**top["kinematic_bias"])
     modes = {n.removeprefix("modes."): v for n, v in zip(names, values, strict=True) if n.startswith("modes.")}
-    return dataclasses.replace(SvnSettings(), modes=dataclasses.replace(ModeSettings(), **modes), **top)
+    init = {n.removeprefix("init."): v for n, v in zip(names, values, strict=True) if n.startswith("init.")}
+    return (dataclasses.replace(SvnSettings(), modes=dataclasses.replace(ModeSettings(), **modes), **top),
+            dataclasses.replace(InitConfig(), **init))
 
 
 def _references(results: list[Path]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -97,7 +102,7 @@ def main() -> None:
     for run in args.runs:
         rec = read_recording(run)
         config = tracker_config(rec, "svn", window=args.window, disable=suggested_disable(run), seed=0)
-        trackers = [SvnTracker(config, s) for s in settings]
+        trackers = [SvnTracker(config, s, init) for s, init in settings]
         cpu = np.zeros((2, len(rec.frames)))
         err: list[list[tuple[float, float, bool, bool]]] = [[], []]
         verdicts = np.zeros((2, len(rec.frames)), dtype=bool)

@@ -315,15 +315,17 @@ def test_a_step_the_model_predicted_lets_the_next_small_step_stop_the_transport(
 def test_steady_frames_without_a_mask_stop_after_one_small_step(window: int) -> None:
     """Tracking a steady turn on keypoints and grasp alone (a cost close to quadratic), the model test ends each
     transport one linearisation sooner than the quiet test's two small steps would, at L = 1 and at L = 3 (there
-    only because the window's cost after a step is read from the next linearisation, not the safeguard's trial)."""
+    only because the window's cost after a step is read from the next linearisation, not the safeguard's trial).
+    Compared from frame 12 on: the seeding's wider margin (``InitConfig.mode_nll_margin`` 80) keeps a second mode
+    alive until frame 9 at L = 3, and the frames before are not steady."""
     from dataclasses import replace
 
     counts = {}
     for tol in (0.05, 0.0):
         tr = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(), particles=30, window=window))
         tr.svn = replace(tr.svn, stop_model_tol=tol)
-        counts[tol] = [tr.step(_turning_frame(k, mask=k < 2)).iterations for k in range(12)]
-    assert all(m < p for m, p in zip(counts[0.05][8:], counts[0.0][8:], strict=True)), counts
+        counts[tol] = [tr.step(_turning_frame(k, mask=k < 2)).iterations for k in range(18)]
+    assert all(m < p for m, p in zip(counts[0.05][12:], counts[0.0][12:], strict=True)), counts
 
 
 @pytest.mark.parametrize("method", ["svn", "svgd"])

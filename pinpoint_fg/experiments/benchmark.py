@@ -231,11 +231,11 @@ def run_benchmark(out: Path = Path("benchmark-output"), frames: int = 300, seed:
     if held_out_geometry:
         from pinpoint_fg.sim.config import held_out_config
 
-        held_seeds = (seed, *unseen_seeds)
+        held_seeds, held_config = (seed, *unseen_seeds), held_out_config()
         held_rows: list[dict] = []
         for k in held_seeds:
             held_rows += _scored_runs(out / f"held-out-seed-{k}", frames, k, UNSEEN_METHODS, jobs,
-                                      f"held-out geometry, seed {k}", held_out_config())[1]
+                                      f"held-out geometry, seed {k}", held_config)[1]
         _write_table(out, "held_out", unseen_table(held_rows, held_seeds, "Held-out camera and needle, seeds"),
                      held_rows)
 

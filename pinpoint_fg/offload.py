@@ -38,7 +38,8 @@ from pinpoint_fg.posterior.summary import modes_of_estimate, posterior_columns
 OBSERVE_AHEAD = 3
 #: Rows left to the workers at the end of a run from which this process makes the unstarted ones itself even
 #: though it has not loaded scikit-learn: the import (~0.35 s) costs about as much as the workers' backlog of
-#: this many rows shared between two processes (a verdict takes 20-30 ms).
+#: this many rows shared between two processes (a verdict took 20-30 ms when this was chosen; 8-12 ms since the
+#: thirty-third round's EM tolerance, so the worker rarely leaves such a backlog on a clear run).
 INLINE_BACKLOG = 30
 
 #: Manager threads of worker pools :meth:`Offload.close` left shutting down (see :func:`join_stopped_workers`).
@@ -147,8 +148,10 @@ class Offload:
     """Observations and result rows of a run, inline (``workers = 0``) or in spawned processes: ``workers`` for the
     rows, which with one worker also observes, and with more an observer of its own.
 
-    Computed inline, the GMM fits (20-30 ms a frame) and mask frames (~10 ms) made ``track`` take
-    2x the step latencies it reported. With two or more row workers the observations get a process of their own:
+    Computed inline, the GMM fits (20-30 ms a frame then; 8-12 ms since the thirty-third round) and mask frames
+    (~10 ms) made ``track`` take 2x the step latencies it reported. On normal-01 (100 frames) the worker's
+    observations were used for none of the frames while a verdict cost about a step (it was queued behind them);
+    with the cheaper verdicts it keeps up. With two or more row workers the observations get a process of their own:
     they are on the tracker's path and rows are not, and queued behind GMM fits most of them were not ready in time
     and were made inline. With one worker (``pinpoint-fg track``'s default) they share it all the same: on two cores
     a third process cost more than it saved. Starting a worker (interpreter, imports) takes ~0.5 s of CPU, the

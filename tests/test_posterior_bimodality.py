@@ -245,3 +245,59 @@ def test_fits_without_scikit_learns_checks_are_those_with_them_bit_for_bit(
         checked.bic1, checked.bic2, checked.ashman_d, checked.minor_weight)
     for a, b in ((fast.means, checked.means), (fast.covariances, checked.covariances), (fast.weights, checked.weights)):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("case", ["one", "two", "overlap", "duplicates"])
+def test_one_component_fit_of_one_em_step_is_the_converged_fit(case: str) -> None:
+    """The verdict fits one component with a single EM step (``max_iter = 1``): with every responsibility one,
+    that step's M-step is the converged fit, so BIC(1) equals scikit-learn's fit run to convergence bit for bit."""
+    from sklearn.mixture import GaussianMixture
+
+    from pinpoint_fg.posterior.bimodality import REG_COVAR
+
+    rng = np.random.default_rng(["one", "two", "overlap", "duplicates"].index(case))
+    if case == "one":
+        P = cloud(rng, 50, np.zeros(6), 1.0)
+    elif case == "two":
+        P = np.concatenate([cloud(rng, 25, np.zeros(6), 0.7), cloud(rng, 25, FAR, 0.7)])
+    elif case == "overlap":
+        P = np.concatenate([cloud(rng, 30, np.zeros(6), 1.0), cloud(rng, 20, FAR / 5, 1.0)])
+    else:
+        P = np.repeat(cloud(rng, 10, np.zeros(6), 1.0), 5, axis=0)
+    X = tangent_at_map(T_MAP, P)
+    converged = GaussianMixture(n_components=1, covariance_type="full", reg_covar=REG_COVAR, random_state=0,
+                                init_params="k-means++", max_iter=100, tol=1e-12).fit(X)
+    assert converged.converged_ and converged.n_iter_ >= 2
+    assert assess_bimodality(P, T_MAP).bic1 == converged.bic(X)
+
+
+def test_em_settings_are_checked() -> None:
+    from pinpoint_fg.posterior.bimodality import EmSettings
+
+    for bad in ({"tol": 0.0}, {"tol": float("nan")}, {"n_init": 0}, {"max_iter": 0}):
+        with pytest.raises(InputError):
+            EmSettings(**bad)
+
+
+def test_the_fits_use_the_verdicts_em_settings(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One component in one EM step; two from ``N_INIT`` k-means++ starts stopped at ``EM_TOL`` (the module docstring
+    says why 1e-2 and not scikit-learn's 1e-3); ``em`` overrides the two-component fit only."""
+    from sklearn.mixture import GaussianMixture
+
+    from pinpoint_fg.posterior.bimodality import EM_MAX_ITER, EM_TOL, N_INIT, EmSettings
+
+    seen: list[tuple] = []
+    fit = GaussianMixture.fit
+
+    def spy(self, X, y=None):  # scikit-learn's signature
+        seen.append((self.n_components, self.n_init, self.max_iter, self.tol if self.n_components == 2 else None))
+        return fit(self, X, y)
+
+    monkeypatch.setattr(GaussianMixture, "fit", spy)
+    P = np.concatenate([cloud(np.random.default_rng(0), 25, np.zeros(6), 0.7),
+                        cloud(np.random.default_rng(1), 25, FAR, 0.7)])
+    default = assess_bimodality(P, T_MAP)
+    converged = assess_bimodality(P, T_MAP, em=EmSettings(tol=1e-9, n_init=5, max_iter=5000))
+    assert EM_TOL == 1e-2 and N_INIT == 3
+    assert seen == [(1, 1, 1, None), (2, N_INIT, EM_MAX_ITER, EM_TOL), (1, 1, 1, None), (2, 5, 5000, 1e-9)]
+    assert default.bimodal and converged.bimodal and default.bic1 == converged.bic1

@@ -149,9 +149,9 @@ class Offload:
     rows, which with one worker also observes, and with more an observer of its own.
 
     Computed inline, the GMM fits (20-30 ms a frame then; 8-12 ms since the thirty-third round) and mask frames
-    (~10 ms) made ``track`` take 2x the step latencies it reported. On normal-01 (100 frames) the worker's
-    observations were used for none of the frames while a verdict cost about a step (it was queued behind them);
-    with the cheaper verdicts it keeps up. With two or more row workers the observations get a process of their own:
+    (~10 ms) made ``track`` take 2x the step latencies it reported. While a verdict cost about an SVN step, the
+    worker's observations, queued behind the verdicts, were used for 0-16 of normal-01's 150 frames; with the
+    cheaper verdicts, for 92-95. With two or more row workers the observations get a process of their own:
     they are on the tracker's path and rows are not, and queued behind GMM fits most of them were not ready in time
     and were made inline. With one worker (``pinpoint-fg track``'s default) they share it all the same: on two cores
     a third process cost more than it saved. Starting a worker (interpreter, imports) takes ~0.5 s of CPU, the

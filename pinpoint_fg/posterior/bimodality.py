@@ -25,10 +25,11 @@ mean log-likelihood per point changes by less than ``tol = 1e-2`` (:class:`EmSet
 Why ``tol = 1e-2`` and not scikit-learn's 1e-3: the verdict thresholds the fit (BIC(2) < BIC(1) needs the
 second component to gain ``28/2 ln n`` nats, 55 at 50 particles), and on a unimodal cloud split in two EM crawls
 at 1e-3 for tens of iterations that move none of the three tests. Against a converged reference (20 starts,
-``tol = 1e-6``, ``max_iter = 2000``), on the SVN and PF particle sets of ``scripts/verdict_em_tol.py``'s runs,
-1e-2 disagreed on as many frames as 1e-3 did within one or two, and cost 0.6 of the time (README, *Latency*,
-thirty-third round). The one-component fit stops after one EM step: its responsibilities are all ones, so that
-step's M-step is the sample mean and covariance, the converged fit bit for bit (``max_iter = 1``).
+``tol = 1e-6``, ``max_iter = 2000``; ``scripts/verdict_em_tol.py``), 1e-2 disagreed on 17 of 1,080 SVN particle
+sets (1e-3: 16), 2 of 180 PF sets (2) and 67 of 240 SVGD sets (63: SVGD's wide clouds split either way with the
+starts), and cost 0.6 of the time (README, *Method notes* and *Latency*, thirty-third round). The one-component
+fit stops after one EM step: its responsibilities are all ones, so that step's M-step is the sample mean and
+covariance, the converged fit bit for bit (``max_iter = 1``).
 scikit-learn's mixture has no sample weights, so a weighted set (particle filter) is first
 turned into an equally weighted one by systematic resampling with a seeded generator; sets
 larger than ``max_points`` (default 1000) are thinned the same way (uniform weights), which

@@ -30,6 +30,25 @@ def cloud(rng: np.random.Generator, n: int, centre_scaled, std_scaled: float) ->
 FAR = np.array([6.0, 0.0, 0.0, 0.0, 0.0, 8.0])  # 30 deg about x and 8 mm along z: |FAR| = 10 units
 
 
+def shaped_set(case: str, rng: np.random.Generator) -> np.ndarray:
+    """A particle set of a named shape: ``one`` Gaussian (50), ``two`` separated clusters (25 + 25), ``overlap``
+    (30 + 20, a fifth of FAR apart), ``weighted`` (200 + 100, for random weights), ``thinned`` (1500 + 600, above
+    the fit's point cap), ``duplicates`` (10 poses, each 5 times)."""
+    if case == "one":
+        return cloud(rng, 50, np.zeros(6), 1.0)
+    if case == "two":
+        return np.concatenate([cloud(rng, 25, np.zeros(6), 0.7), cloud(rng, 25, FAR, 0.7)])
+    if case == "overlap":
+        return np.concatenate([cloud(rng, 30, np.zeros(6), 1.0), cloud(rng, 20, FAR / 5, 1.0)])
+    if case == "weighted":
+        return np.concatenate([cloud(rng, 200, np.zeros(6), 1.0), cloud(rng, 100, FAR, 1.0)])
+    if case == "thinned":
+        return np.concatenate([cloud(rng, 1500, np.zeros(6), 1.0), cloud(rng, 600, FAR, 1.0)])
+    if case == "duplicates":
+        return np.repeat(cloud(rng, 10, np.zeros(6), 1.0), 5, axis=0)
+    raise ValueError(case)
+
+
 def test_tangent_at_map_scaling() -> None:
     xi = np.array([[1.0, 0, 0, 1, 0, 0], [0, -2, 0, 0, 0, 3]]) * SCALE
     np.testing.assert_allclose(
@@ -213,18 +232,8 @@ def test_fits_without_scikit_learns_checks_are_those_with_them_bit_for_bit(
     import sklearn
 
     rng = np.random.default_rng(["one", "two", "overlap", "weighted", "thinned"].index(case))
-    weights = None
-    if case == "one":
-        P = cloud(rng, 50, np.zeros(6), 1.0)
-    elif case == "two":
-        P = np.concatenate([cloud(rng, 25, np.zeros(6), 0.7), cloud(rng, 25, FAR, 0.7)])
-    elif case == "overlap":
-        P = np.concatenate([cloud(rng, 30, np.zeros(6), 1.0), cloud(rng, 20, FAR / 5, 1.0)])
-    elif case == "weighted":
-        P = np.concatenate([cloud(rng, 200, np.zeros(6), 1.0), cloud(rng, 100, FAR, 1.0)])
-        weights = rng.random(300)
-    else:
-        P = np.concatenate([cloud(rng, 1500, np.zeros(6), 1.0), cloud(rng, 600, FAR, 1.0)])
+    P = shaped_set(case, rng)
+    weights = rng.random(300) if case == "weighted" else None
     from sklearn.mixture import GaussianMixture
 
     skipped: list[bool] = []
@@ -255,15 +264,7 @@ def test_one_component_fit_of_one_em_step_is_the_converged_fit(case: str) -> Non
 
     from pinpoint_fg.posterior.bimodality import REG_COVAR
 
-    rng = np.random.default_rng(["one", "two", "overlap", "duplicates"].index(case))
-    if case == "one":
-        P = cloud(rng, 50, np.zeros(6), 1.0)
-    elif case == "two":
-        P = np.concatenate([cloud(rng, 25, np.zeros(6), 0.7), cloud(rng, 25, FAR, 0.7)])
-    elif case == "overlap":
-        P = np.concatenate([cloud(rng, 30, np.zeros(6), 1.0), cloud(rng, 20, FAR / 5, 1.0)])
-    else:
-        P = np.repeat(cloud(rng, 10, np.zeros(6), 1.0), 5, axis=0)
+    P = shaped_set(case, np.random.default_rng(["one", "two", "overlap", "duplicates"].index(case)))
     X = tangent_at_map(T_MAP, P)
     converged = GaussianMixture(n_components=1, covariance_type="full", reg_covar=REG_COVAR, random_state=0,
                                 init_params="k-means++", max_iter=100, tol=1e-12).fit(X)

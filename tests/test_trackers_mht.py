@@ -121,6 +121,9 @@ def test_config_validation() -> None:
         MhtConfig(max_branches=0)
     with pytest.raises(ValueError):
         MhtConfig(admit_nats=30.0, prune_nats=20.0)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="reroute_nats"):
+            MhtConfig(reroute_nats=bad)
 
 
 def test_cli_track_mht(tmp_path: Path) -> None:
@@ -173,3 +176,41 @@ def test_smoothed_poses_cover_every_frame_when_a_branch_started_inside_the_windo
     frames += [f for f, _, _ in tr.final_smoothed()]
     assert switched["admitted"] >= 1 and switched["reseeded"] >= 1, switched  # both ways a branch starts late
     assert frames == list(range(n))
+
+
+def test_a_proposal_that_is_a_better_route_into_another_branchs_mode_replaces_that_branch() -> None:
+    """The better route into a mode wins: both circles of an ambiguous frame are branches; the twin's is set 8 nats
+    behind. Frames 1 s apart without kinematics (a wide random walk), the best branch's twin proposal lands on the
+    twin's branch and beats its own history by more than ``reroute_nats``: it replaces the branch, whose weight rises
+    to the route's. With ``reroute_nats = inf`` the branch keeps its own history and its handicap."""
+    from pinpoint_fg.likelihood import Switches
+    from pinpoint_fg.noise import NoiseConfig
+    from pinpoint_fg.observation import Observation
+    from pinpoint_fg.proposals import twin_poses
+    from tests.test_trackers_svn import CAM, _ambiguous_scene
+    from tests.test_trackers_svn import NEEDLE as NEEDLE_SVN
+
+    T, _, arc = _ambiguous_scene()
+    twin = twin_poses(T[None], CAM.K, NEEDLE_SVN.radius_m, NEEDLE_SVN.tail_angle_rad, NEEDLE_SVN.tip_angle_rad)[0]
+    sw = Switches(grasp_perpendicular=False, grasp_position=False, tip=False, tail=False)
+    cfg = TrackerConfig(CAM, NEEDLE_SVN, NoiseConfig(), sw, particles=4)
+    rng = np.random.default_rng(5)
+    obs = [Observation(k, float(k), backbone_px=arc + rng.normal(size=arc.shape) * 0.5) for k in range(2)]
+
+    def is_twin(P: np.ndarray) -> bool:
+        return pose_error(P, twin)[1] < np.deg2rad(15.0)  # the other modes are 130-180 deg from it
+
+    def twin_log_odds(reroute: float) -> float:
+        mht = MhtTracker(cfg, MhtConfig(reroute_nats=reroute))
+        mht.step(obs[0])
+        held = [b for b in mht.branches if is_twin(b.smoother.newest)]
+        assert len(held) == 1 and held[0] is not mht.branches[0]
+        held[0].log_w -= 8.0
+        est = mht.step(obs[1])
+        w = [m.weight for m in est.modes if is_twin(m.cam_T_needle)]
+        assert len(w) == 1
+        return float(np.log(w[0] / est.modes[0].weight))
+
+    own, routed = twin_log_odds(np.inf), twin_log_odds(1.0)
+    assert own < -6.0  # the handicap stays (its own history); measured -9.6
+    assert routed > own + 1.0  # replaced by the better route; measured -1.9

@@ -544,3 +544,70 @@ def test_greedy_groups_equal_the_plain_loop_over_every_free_pose(seed: int) -> N
     labels, reps = _greedy_groups(P, order, 2.0)
     assert labels.tolist() == labels_ref.tolist() and reps.tolist() == reps_ref
     assert len(reps) > 3
+
+
+def _rerouting_setup(monkeypatch, advantage_nats: float):  # noqa: ANN001, ANN202
+    """Two modes, the true circle (rows 0-5, a broad prior: a jump costs little) and its twin (rows 6-11, a tight
+    prior on the twin), whose own history is shifted so that the route from the true mode into the twin's basin (its
+    proposal, the twin pose, polished on the true mode's window) beats the twin's own by ``advantage_nats``."""
+    from pinpoint_fg.proposals import twin_poses
+    from pinpoint_fg.trackers import svn_modes
+
+    w, _ = _two_circle_window(np.random.default_rng(6))
+    w.prior_W[:6] *= 0.02  # the true mode's prior: 50x the standard deviation
+    T, _, _ = _ambiguous_scene()
+    twin = twin_poses(T[None], CAM.K, NEEDLE.radius_m, NEEDLE.tail_angle_rad, NEEDLE.tip_angle_rad)[0]
+    lin = w.linearize()
+    found = basins(w.newest, lin, w.evidence)
+    assert found.reps.shape == (2,)
+    settled, _, _ = svn_modes.settle(w.subset(np.arange(12)), lin, found, iters=30)
+    twin_mode = int(found.labels[6])
+    assert np.all(found.labels[6:] == twin_mode) and np.all(found.labels[:6] != twin_mode)
+    # the route: the true mode's best hypothesis's window with the twin pose, polished
+    route = w.subset([int(found.reps[1 - twin_mode])])
+    route.poses[-1] = twin[None]
+    _, _, z_route = laplace_terms(svn_modes.polish(route, route.linearize(), ModeSettings().polish_iters),
+                                  route.evidence)
+    w.evidence[6:] += float(settled.mode_log_evidence[twin_mode] - z_route[0]) + advantage_nats
+    monkeypatch.setattr(svn_modes, "mode_proposals", lambda T_mode, *a, **k: twin[None])
+    lin = w.linearize()
+    return w, lin, basins(w.newest, lin, w.evidence), twin_mode, float(z_route[0])
+
+
+def test_a_proposal_that_is_a_better_route_into_a_held_mode_takes_over_its_books(monkeypatch) -> None:
+    """The better route into a mode wins (module docstring): a proposal landing in another held mode's basin whose
+    Laplace evidence beats that mode's by more than ``reroute_nats`` replaces the mode's windows (prior, evidence,
+    newest pose: the first copy exact, the others jittered), and the mode's weight becomes the route's. One that beats
+    it by less leaves the mode's own history alone."""
+    from pinpoint_fg.trackers.svn_modes import Admitted, allot, propose
+
+    w, lin, found, twin_mode, z_route = _rerouting_setup(monkeypatch, advantage_nats=3.0)
+    settings = ModeSettings(screen_nats=1e9, reroute_nats=1.0)
+    out = propose(w, lin, found, w.frames[-1], settings)
+    assert out.windows is not None and out.replaced().tolist() == [twin_mode]
+    assert out.log_evidence[0] == pytest.approx(z_route, rel=0, abs=1e-9)  # propose polishes it alike
+    rescored = out.basins
+    assert out.log_evidence[0] > rescored.mode_log_evidence[twin_mode] + 2.9  # the 3 nats, to the polish
+    before = w.newest.copy(), w.evidence.copy()
+    moved = allot(w, rescored, out, settings, np.random.default_rng(0), np.r_[[1e-3] * 3, [1e-5] * 3])
+    members = np.flatnonzero(rescored.labels == twin_mode)
+    others = np.flatnonzero(rescored.labels != twin_mode)
+    assert moved == members.size == 6
+    assert np.all(w.evidence[members] == out.windows.evidence[0])  # the route's books: the true mode's history
+    assert np.all(w.prior_mean[members] == out.windows.prior_mean[0])
+    assert np.array_equal(w.newest[members[0]], out.windows.newest[0])  # the first copy exact
+    assert not np.any(np.all(w.newest[members[1:]] == out.windows.newest[0], axis=(1, 2)))  # the others jittered
+    assert np.array_equal(w.newest[others], before[0][others]) and np.array_equal(w.evidence[others],
+                                                                                   before[1][others])
+    # beaten by less than the margin: the held mode keeps its own history (nothing admitted, nothing polished)
+    w2, lin2, found2, _, _ = _rerouting_setup(monkeypatch, advantage_nats=0.5)
+    out2 = propose(w2, lin2, found2, w2.frames[-1], settings)
+    assert out2.windows is None
+    assert isinstance(out2, Admitted)
+
+
+def test_reroute_margin_is_checked() -> None:
+    for bad in (-0.5, float("nan")):
+        with pytest.raises(ValueError, match="reroute_nats"):
+            ModeSettings(reroute_nats=bad)
+    assert ModeSettings(reroute_nats=float("inf")).reroute_nats == float("inf")

@@ -64,7 +64,11 @@ part (which branches live, their weights) is ~50 lines below.
    cost when transported). Proposals within :attr:`MhtConfig.admit_nats` of the best branch
    that are not duplicates of a branch compete with the branches for the ``K`` slots; the ones
    that get a slot become GTSAM smoothers (prior + frame factors, LM) and are rescored with
-   GTSAM's marginal exactly like step 1.
+   GTSAM's marginal exactly like step 1. A proposal that duplicates *another* branch than its
+   parent is a second route into that branch's mode (the parent's history, then a jump): it
+   competes too when it beats that branch by more than :attr:`MhtConfig.reroute_nats`, and the
+   merge of step 4 keeps the better, so a mode's weight is its best route's, as in SVN
+   (:mod:`pinpoint_fg.trackers.svn_modes`, *Routes*, with the measurement).
 4. *Prune.* Branches more than :attr:`MhtConfig.prune_nats` behind the best are dropped;
    duplicates (within :attr:`MhtConfig.separation`, or within Mahalanobis distance
    :attr:`MhtConfig.merge_mahalanobis2` under the better branch's marginal: one broad mode is
@@ -134,6 +138,7 @@ from pinpoint_fg.trackers.map import MapConfig, MapSmoother, motion_model
 from pinpoint_fg.trackers.mht_branches import (
     Branch,
     branch_evidence,
+    duplicated,
     history_cost,
     is_duplicate,
     mixture_spread,
@@ -164,6 +169,9 @@ class MhtConfig:
     """Batched Gauss-Newton steps that polish each proposal on the frame, and again on its window."""
     frame_ellipse: bool = True
     """Also propose both circles of the frame's fitted ellipse (and their flips)."""
+    reroute_nats: float = 1.0
+    """A proposal landing on another branch's mode replaces that branch (the better route into the mode) when its
+    log-weight beats the branch's by more than this (inf: branches keep their own history)."""
     map: MapConfig = field(default_factory=MapConfig)
     """The settings of every branch's smoother (the ``map`` baseline's)."""
 
@@ -172,6 +180,8 @@ class MhtConfig:
             raise ValueError(f"max_branches must be at least 1, got {self.max_branches}")
         if not (0 <= self.admit_nats <= self.prune_nats):
             raise ValueError("need 0 <= admit_nats <= prune_nats")
+        if not self.reroute_nats >= 0:
+            raise ValueError(f"reroute_nats must be >= 0 (inf: no rerouting), got {self.reroute_nats}")
 
 
 class MhtTracker(Tracker):
@@ -251,14 +261,14 @@ class MhtTracker(Tracker):
     def _propose(self, lik: FrameLikelihood, key: int, obs: Observation, branches: list[Branch],
                  prev_w: list[float]) -> tuple[list[Branch], int, int, int]:
         """Proposals of every branch: screen, let the best compete for the K slots, build their smoothers."""
-        held = np.stack([b.smoother.newest for b in branches])
         best = max(b.log_w for b in branches)
         cands: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, float, list, dict]] = []
         n_prop = 0
         for j, (b, w0) in enumerate(zip(branches, prev_w, strict=True)):
             T_b = b.smoother.newest
             # the frame's ellipse is the same for every branch: proposed once, from the best branch's history
-            P = mode_proposals(T_b, lik, existing=held, separation=self.mht.separation,
+            # proposals landing on another branch are kept: other routes into its mode (admitted when better)
+            P = mode_proposals(T_b, lik, separation=self.mht.separation,
                                frame_ellipse=self.mht.frame_ellipse and j == 0)
             if P.shape[0] == 0:
                 continue
@@ -274,8 +284,10 @@ class MhtTracker(Tracker):
             Tp, E, H = polish_with_prior(lik, P, means, info, self.mht.polish_iters)
             score = w0 + laplace_log_evidence(E, H) + gaussian_log_normaliser(b.prior_cov)
             for i in np.flatnonzero(np.isfinite(score) & (score >= best - self.mht.admit_nats)):
-                if is_duplicate(Tp[i], branches, self.mht.separation, self.mht.merge_mahalanobis2):
-                    continue
+                dup = duplicated(Tp[i], branches, self.mht.separation, self.mht.merge_mahalanobis2)
+                if dup[j] or (dup.any() and score[i] <= max(branches[d].log_w for d in np.flatnonzero(dup))
+                                                        + self.mht.reroute_nats):
+                    continue  # the parent's own mode, or a route into a branch no better than the branch's own
                 before = b.smoother.before  # the parent's smoothed poses of the frames still to be reported
                 if self.mht.transport_prior:
                     G = rigid_map(T_b, Tp[i])
@@ -294,7 +306,7 @@ class MhtTracker(Tracker):
             rank = sum(s > score for s in slots)
             if rank >= self.mht.max_branches:
                 break
-            if is_duplicate(T, branches + out, self.mht.separation, self.mht.merge_mahalanobis2):
+            if is_duplicate(T, out, self.mht.separation, self.mht.merge_mahalanobis2):
                 continue
             nb, r = self._new_branch(lik, key, obs, T, mean, pc, w0, before)
             rec += r

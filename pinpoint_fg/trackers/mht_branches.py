@@ -61,13 +61,17 @@ def branch_evidence(lik: FrameLikelihood, T: np.ndarray, cov: np.ndarray, mean: 
 
 def is_duplicate(T: np.ndarray, kept: list[Branch], separation: tuple[float, float], merge_mahalanobis2: float) -> bool:
     """True when ``T`` is the same mode as one of ``kept`` (absolute separation or Mahalanobis distance)."""
+    return bool(duplicated(T, kept, separation, merge_mahalanobis2).any())
+
+
+def duplicated(T: np.ndarray, kept: list[Branch], separation: tuple[float, float], merge_mahalanobis2: float
+               ) -> np.ndarray:
+    """(B,) bool: which of ``kept`` ``T`` is the same mode as (:func:`is_duplicate`'s rule, per branch)."""
     if not kept:
-        return False
+        return np.zeros(0, dtype=bool)
     centres = np.stack([k.smoother.newest for k in kept])
-    if near(T, centres, separation).any():
-        return True
     covs = np.stack([k.smoother.cov for k in kept])
-    return bool(np.any(_mahalanobis2(T, centres, covs) < merge_mahalanobis2))
+    return near(T, centres, separation)[0] | (_mahalanobis2(T, centres, covs) < merge_mahalanobis2)
 
 
 def select_branches(branches: list[Branch], prune_nats: float, max_branches: int, separation: tuple[float, float],

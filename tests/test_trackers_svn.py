@@ -316,16 +316,25 @@ def test_steady_frames_without_a_mask_stop_after_one_small_step(window: int) -> 
     """Tracking a steady turn on keypoints and grasp alone (a cost close to quadratic), the model test ends each
     transport one linearisation sooner than the quiet test's two small steps would, at L = 1 and at L = 3 (there
     only because the window's cost after a step is read from the next linearisation, not the safeguard's trial).
-    Compared from frame 12 on: the seeding's wider margin (``InitConfig.mode_nll_margin`` 80) keeps a second mode
-    alive until frame 9 at L = 3, and the frames before are not steady."""
+    Compared on frames 12-17, each from the same state (a copy of the tracker with the model test steps the frame
+    with the quiet test alone): the seeding's wider margin (``InitConfig.mode_nll_margin`` 80) keeps a second mode
+    alive for the first frames, and the frames before are not steady. (Two independent runs, compared until the
+    thirty-fourth round, drift into different states: with that round's mode routes the second mode died five
+    frames sooner at L = 3 and frame 17 of the two runs was reached from different poses.)"""
+    import copy
     from dataclasses import replace
 
-    counts = {}
-    for tol in (0.05, 0.0):
-        tr = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(), particles=30, window=window))
-        tr.svn = replace(tr.svn, stop_model_tol=tol)
-        counts[tol] = [tr.step(_turning_frame(k, mask=k < 2)).iterations for k in range(18)]
-    assert all(m < p for m, p in zip(counts[0.05][12:], counts[0.0][12:], strict=True)), counts
+    tr = SvnTracker(TrackerConfig(CAM, NEEDLE, NoiseConfig(), Switches(), particles=30, window=window))
+    tr.svn = replace(tr.svn, stop_model_tol=0.05)
+    for k in range(12):
+        tr.step(_turning_frame(k, mask=k < 2))
+    counts = []
+    for k in range(12, 18):
+        plain = copy.deepcopy(tr)
+        plain.svn = replace(plain.svn, stop_model_tol=0.0)
+        counts.append((tr.step(_turning_frame(k, mask=False)).iterations,
+                       plain.step(_turning_frame(k, mask=False)).iterations))
+    assert all(m < p for m, p in counts), counts
 
 
 @pytest.mark.parametrize("method", ["svn", "svgd"])

@@ -60,8 +60,9 @@ mass of a basin at frame ``k`` sums over every history that ends in it; the best
 that sum than the mode's own history alone, which after a pruning and a re-proposal is whichever
 route happened to create it. Before this rule (the thirty-fourth round) SVN and MHT, which hold the
 same peaks, disagreed on their mode weights by a log-odds offset fixed at each mode's creation:
-median 4.0 nats over snapshots-01's two-mode frames, 0.007 after (``evaluate --reference``'s
-modes verdict on MHT-multimodal / single-mode frames 47 % / 9 % -> 67 % / 4 %).
+median 3.7 nats over the two-mode frames of snapshots seeds 1-8, 0.006 after; SVN's modes verdict
+on the frames MHT calls multimodal / single-mode 51 % / 9.0 % -> 80 % / 5.8 %
+(``scripts/mode_agreement.py``). The accuracy cost is within the coin tosses (README, *Routes*).
 
 **Allotment** (:func:`allot`). Every admitted mode — new, or existing and within
 ``admit_nats`` of the best — holds at least ``floor`` hypotheses: copies of its window (the

@@ -181,8 +181,9 @@ def test_smoothed_poses_cover_every_frame_when_a_branch_started_inside_the_windo
 def test_a_proposal_that_is_a_better_route_into_another_branchs_mode_replaces_that_branch() -> None:
     """The better route into a mode wins: both circles of an ambiguous frame are branches; the twin's is set 8 nats
     behind. Frames 1 s apart without kinematics (a wide random walk), the best branch's twin proposal lands on the
-    twin's branch and beats its own history by more than ``reroute_nats``: it replaces the branch, whose weight rises
-    to the route's. With ``reroute_nats = inf`` the branch keeps its own history and its handicap."""
+    twin's branch and beats its own history by more than ``reroute_nats`` (here 1): it replaces the branch, whose
+    weight rises to the route's. With ``reroute_nats = inf`` (the default) the branch keeps its own history and its
+    handicap."""
     from pinpoint_fg.likelihood import Switches
     from pinpoint_fg.noise import NoiseConfig
     from pinpoint_fg.observation import Observation

@@ -575,13 +575,16 @@ def _rerouting_setup(monkeypatch, advantage_nats: float):  # noqa: ANN001, ANN20
 
 
 def test_a_proposal_that_is_a_better_route_into_a_held_mode_takes_over_its_books(monkeypatch) -> None:
-    """The better route into a mode wins (module docstring): a proposal landing in another held mode's basin whose
-    Laplace evidence beats that mode's by more than ``reroute_nats`` replaces the mode's windows (prior, evidence,
-    newest pose: the first copy exact, the others jittered), and the mode's weight becomes the route's. One that beats
-    it by less leaves the mode's own history alone."""
+    """With routes on (``reroute_nats`` finite; module docstring, *Routes*) the better route into a mode wins: a
+    proposal landing in another held mode's basin whose Laplace evidence beats that mode's by more than
+    ``reroute_nats`` replaces the mode's windows (prior, evidence, newest pose: the first copy exact, the others
+    jittered), and the mode's weight becomes the route's. One that beats it by less leaves the mode's own history
+    alone, and so does the default (off)."""
     from pinpoint_fg.trackers.svn_modes import Admitted, allot, propose
 
     w, lin, found, twin_mode, z_route = _rerouting_setup(monkeypatch, advantage_nats=3.0)
+    # off by default (inf): the held mode keeps its own history, nothing is polished or admitted
+    assert propose(w.subset(np.arange(12)), lin, found, w.frames[-1], ModeSettings(screen_nats=1e9)).windows is None
     settings = ModeSettings(screen_nats=1e9, reroute_nats=1.0)
     out = propose(w, lin, found, w.frames[-1], settings)
     assert out.windows is not None and out.replaced().tolist() == [twin_mode]

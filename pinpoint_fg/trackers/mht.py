@@ -64,11 +64,12 @@ part (which branches live, their weights) is ~50 lines below.
    cost when transported). Proposals within :attr:`MhtConfig.admit_nats` of the best branch
    that are not duplicates of a branch compete with the branches for the ``K`` slots; the ones
    that get a slot become GTSAM smoothers (prior + frame factors, LM) and are rescored with
-   GTSAM's marginal exactly like step 1. A proposal that duplicates *another* branch than its
-   parent is a second route into that branch's mode (the parent's history, then a jump): it
-   competes too when it beats that branch by more than :attr:`MhtConfig.reroute_nats`, and the
-   merge of step 4 keeps the better, so a mode's weight is its best route's, as in SVN
-   (:mod:`pinpoint_fg.trackers.svn_modes`, *Routes*, with the measurement).
+   GTSAM's marginal exactly like step 1. With a finite :attr:`MhtConfig.reroute_nats` (off by
+   default), a proposal that duplicates *another* branch than its parent is a second route into
+   that branch's mode (the parent's history, then a jump): it competes too when it beats that
+   branch by more than ``reroute_nats``, and the merge of step 4 keeps the better, so a mode's
+   weight is its best route's, as in SVN (:mod:`pinpoint_fg.trackers.svn_modes`, *Routes*, with
+   the measurement and why it is not the default).
 4. *Prune.* Branches more than :attr:`MhtConfig.prune_nats` behind the best are dropped;
    duplicates (within :attr:`MhtConfig.separation`, or within Mahalanobis distance
    :attr:`MhtConfig.merge_mahalanobis2` under the better branch's marginal: one broad mode is
@@ -169,9 +170,10 @@ class MhtConfig:
     """Batched Gauss-Newton steps that polish each proposal on the frame, and again on its window."""
     frame_ellipse: bool = True
     """Also propose both circles of the frame's fitted ellipse (and their flips)."""
-    reroute_nats: float = 1.0
+    reroute_nats: float = float("inf")
     """A proposal landing on another branch's mode replaces that branch (the better route into the mode) when its
-    log-weight beats the branch's by more than this (inf: branches keep their own history)."""
+    log-weight beats the branch's by more than this; inf (the default): branches keep their own history and such
+    proposals are not generated (SVN's ``ModeSettings.reroute_nats`` alike; 1 was measured and not kept)."""
     map: MapConfig = field(default_factory=MapConfig)
     """The settings of every branch's smoother (the ``map`` baseline's)."""
 
@@ -261,15 +263,16 @@ class MhtTracker(Tracker):
     def _propose(self, lik: FrameLikelihood, key: int, obs: Observation, branches: list[Branch],
                  prev_w: list[float]) -> tuple[list[Branch], int, int, int]:
         """Proposals of every branch: screen, let the best compete for the K slots, build their smoothers."""
+        held = np.stack([b.smoother.newest for b in branches])
         best = max(b.log_w for b in branches)
         cands: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, float, list, dict]] = []
         n_prop = 0
         for j, (b, w0) in enumerate(zip(branches, prev_w, strict=True)):
             T_b = b.smoother.newest
             # the frame's ellipse is the same for every branch: proposed once, from the best branch's history
-            # proposals landing on another branch are kept: other routes into its mode (admitted when better)
-            P = mode_proposals(T_b, lik, separation=self.mht.separation,
-                               frame_ellipse=self.mht.frame_ellipse and j == 0)
+            # with routes on, proposals landing on another branch are kept: other routes into its mode
+            P = mode_proposals(T_b, lik, existing=None if np.isfinite(self.mht.reroute_nats) else held,
+                               separation=self.mht.separation, frame_ellipse=self.mht.frame_ellipse and j == 0)
             if P.shape[0] == 0:
                 continue
             n_prop += P.shape[0]

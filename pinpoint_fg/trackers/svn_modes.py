@@ -51,18 +51,20 @@ noise a 180 deg flip costs thousands of nats, so on clear frames nothing is poli
 their windows (:func:`polish`), deduplicated against each other, and **admitted** when their
 ``log Z`` is within ``admit_nats`` of the best mode's and among the ``max_modes`` best.
 
-**Routes** (``reroute_nats``). A candidate whose peak is *another* held mode's is a second route
-into that mode: the parent's history, then a jump the motion model prices. It is screened on its
-predicted ``log Z`` and polished only when that beats the mode's by more than ``reroute_nats``; if it
-still does once polished, every member of the mode takes its window (prior, evidence, older poses;
-the first copy exact, the others jittered), so the mode's evidence is its best route's. Why: the
-mass of a basin at frame ``k`` sums over every history that ends in it; the best route is closer to
-that sum than the mode's own history alone, which after a pruning and a re-proposal is whichever
-route happened to create it. Before this rule (the thirty-fourth round) SVN and MHT, which hold the
-same peaks, disagreed on their mode weights by a log-odds offset fixed at each mode's creation:
-median 3.7 nats over the two-mode frames of snapshots seeds 1-8, 0.006 after; SVN's modes verdict
-on the frames MHT calls multimodal / single-mode 51 % / 9.0 % -> 80 % / 5.8 %
-(``scripts/mode_agreement.py``). The accuracy cost is within the coin tosses (README, *Routes*).
+**Routes** (``reroute_nats``; off by default). A candidate whose peak is *another* held mode's is a
+second route into that mode: the parent's history, then a jump the motion model prices. With a finite
+``reroute_nats`` such candidates are generated, screened on their predicted ``log Z`` and polished only
+when that beats the mode's by more than ``reroute_nats``; if one still does once polished, every member
+of the mode takes its window (prior, evidence, older poses; the first copy exact, the others jittered),
+so the mode's evidence is its best route's (MHT: ``MhtConfig.reroute_nats``). The mass of a basin sums
+over every history that ends in it, and the best route is nearer that sum than the mode's own history.
+Measured with 1 nat in both trackers (the thirty-fourth round, ``scripts/mode_agreement.py``,
+``scripts/compare_svn_map_mht.py``, bench42): SVN's and MHT's weights agree (median log-odds offset of
+the same two modes over snapshots seeds 1-8, 3.7 -> 0.006 nats; SVN's modes verdict on the frames MHT
+calls multimodal / single-mode 51 / 9.0 % -> 80 / 5.8 %), but a minor mode then weighs what one frame
+says against the jump, not its whole history, the MAP (the heaviest mode) follows single frames, and
+SVN's snapshots accuracy fell: mean rotation 18.3 -> 19.9 deg (seeds 1-8), 17.7 -> 19.2 (9-16), held-out
+geometry 39.3 -> 75.0 (truth kept 98 -> 86 %). Not the default.
 
 **Allotment** (:func:`allot`). Every admitted mode — new, or existing and within
 ``admit_nats`` of the best — holds at least ``floor`` hypotheses: copies of its window (the
@@ -123,9 +125,10 @@ class ModeSettings:
     shared_books: bool = True
     """Every member of a settled mode takes its polished peak's window prior and evidence, right after the next
     frame's marginalisation (:func:`book_sources`; False: each hypothesis keeps its own)."""
-    reroute_nats: float = 1.0
+    reroute_nats: float = float("inf")
     """A proposal landing in another held mode's basin replaces that mode's books (the better route into it) when its
-    log-evidence beats the mode's by more than this (inf: held modes keep their own history)."""
+    log-evidence beats the mode's by more than this; inf (the default): held modes keep their own history and such
+    proposals are not generated (module docstring, *Routes*: 1 was measured and not kept)."""
     map_from_prediction: bool = True
     """The previous MAP hypothesis at its motion prediction is one more start of its mode's polish (:func:`settle`)."""
 
@@ -509,9 +512,11 @@ def propose(window: Window, lin: Linearization, found: Basins, lik: FrameLikelih
     top = np.argsort(-mode_z, kind="stable")[: settings.max_modes]
     all_peaks = found.peaks[found.reps]
     poses, parents = [], []
+    reroute = bool(np.isfinite(settings.reroute_nats))
     for k, m in enumerate(top):
-        # proposals landing in another held mode are kept: they are other routes into it (screened below)
-        p = mode_proposals(all_peaks[m], lik, frame_ellipse=(k == 0))
+        # with routes on, proposals landing in another held mode are kept: other routes into it (screened below)
+        others = None if reroute else np.delete(all_peaks, m, axis=0)
+        p = mode_proposals(all_peaks[m], lik, existing=others, frame_ellipse=(k == 0))
         poses.append(p)
         parents += [int(found.reps[m])] * p.shape[0]
     n_prop = len(parents)

@@ -43,13 +43,14 @@ every frame). A candidate is its parent's window with the newest pose replaced: 
 window prior and evidence stay the parent's, so switching mode pays the motion model's price
 for the jump (a proposal does not inherit the parent's history for free; no handicap is
 needed). Candidates whose Gauss-Newton-predicted cost ``m`` exceeds the best mode's by more
-than ``screen_nats``, or whose predicted peak (step not clipped) lies in their parent's own basin
-(the frame's own circles usually do: they fall just outside ``separation`` of the mode's pose but
-inside its basin), are dropped after one batched linearisation (under the per-frame process
-noise a 180 deg flip costs thousands of nats, so on clear frames nothing is polished); the rest
-(at most ``max_candidates``, the most promising first) are polished by Levenberg-Marquardt on
-their windows (:func:`polish`), deduplicated against each other, and **admitted** when their
-``log Z`` is within ``admit_nats`` of the best mode's and among the ``max_modes`` best.
+than ``screen_nats``, or whose predicted peak (step not clipped) is a held mode's (the frame's
+own circles usually are: they fall just outside ``separation`` of the mode's pose but inside its
+basin; with routes on, below, only their parent's own mode), are dropped after one batched
+linearisation (under the per-frame process noise a 180 deg flip costs thousands of nats, so on
+clear frames nothing is polished); the rest (at most ``max_candidates``, the most promising first)
+are polished by Levenberg-Marquardt on their windows (:func:`polish`), deduplicated against every
+mode (with routes on, a better route into one replaces it) and each other, and **admitted** when
+their ``log Z`` is within ``admit_nats`` of the best mode's and among the ``max_modes`` best.
 
 **Routes** (``reroute_nats``; off by default). A candidate whose peak is *another* held mode's is a
 second route into that mode: the parent's history, then a jump the motion model prices. With a finite

@@ -24,27 +24,31 @@ from pathlib import Path
 
 import numpy as np
 
-from pinpoint_fg.eval.modes import mode_weight_calibration, modes_of_result, reference_rates
+from pinpoint_fg.eval.modes import ResultModes, mode_weight_calibration, modes_of_result, reference_rates
 from pinpoint_fg.io.recording import read_recording
-from pinpoint_fg.io.result.reader import read_modes, read_result
+from pinpoint_fg.io.result.reader import read_result
 from pinpoint_fg.trackers.svn_modes import scaled_distance
 
 
-def log_odds_offsets(svn_dir: Path, mht_dir: Path) -> list[float]:
-    """``|log-odds_svn - log-odds_mht|`` of the two heaviest modes on the frames where both hold the same two."""
-    A, B = read_modes(svn_dir).by_frame(), read_modes(mht_dir).by_frame()
+def log_odds_offsets(svn: ResultModes, svn_frames: np.ndarray, mht: ResultModes, mht_frames: np.ndarray
+                     ) -> list[float]:
+    """``|log-odds_svn - log-odds_mht|`` of the two heaviest modes on the frames where both hold the same two.
+
+    ``ResultModes`` list each frame's peaks dominant first, in the order of its sorted weights (modes.csv's order).
+    """
+    row = {int(f): i for i, f in enumerate(svn_frames)}
     out = []
-    for f, mb in B.items():
-        ma = A.get(f, ())
-        if len(ma) < 2 or len(mb) < 2:
+    for j, f in enumerate(mht_frames):
+        i = row.get(int(f))
+        if i is None or svn.peaks[i].shape[0] < 2 or mht.peaks[j].shape[0] < 2:
             continue
-        peaks_b = np.stack([m.cam_T_needle for m in mb])
-        d0, d1 = (scaled_distance(ma[i].cam_T_needle[None], peaks_b) for i in (0, 1))
+        d0, d1 = (scaled_distance(svn.peaks[i][k][None], mht.peaks[j]) for k in (0, 1))
         j0, j1 = int(np.argmin(d0)), int(np.argmin(d1))
         if j0 == j1 or d0[j0] > 1.0 or d1[j1] > 1.0:
             continue
-        odds_a = np.log(ma[0].weight) - np.log(max(ma[1].weight, 1e-300))
-        odds_b = np.log(mb[j0].weight) - np.log(max(mb[j1].weight, 1e-300))
+        wa, wb = svn.weights[i], mht.weights[j]
+        odds_a = np.log(wa[0]) - np.log(max(wa[1], 1e-300))
+        odds_b = np.log(wb[j0]) - np.log(max(wb[j1], 1e-300))
         out.append(abs(float(odds_a - odds_b)))
     return out
 
@@ -56,8 +60,9 @@ def main(results: Path, runs: list[Path]) -> None:
         gt = {f.frame: f.cam_T_needle_gt for f in rec}
         res = {m: read_result(results / f"{run.name}-{m}") for m in ("svn", "mht")}
         modes = {m: modes_of_result(r) for m, r in res.items()}
-        offsets = log_odds_offsets(results / f"{run.name}-svn", results / f"{run.name}-mht")
+        offsets = log_odds_offsets(modes["svn"], res["svn"].frame, modes["mht"], res["mht"].frame)
         svn = res["svn"]
+        # only the modes verdict's rates are printed: it stands in for the GMM verdict's arguments too
         rates = reference_rates(svn.frame, modes["svn"].bimodal, modes["svn"].has_modes, modes["svn"].bimodal,
                                 modes["svn"].has_modes, res["mht"].frame, modes["mht"].weights)
         cal = {}

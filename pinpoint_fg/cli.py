@@ -423,7 +423,11 @@ def _add_conic_model_options(s: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
-    p = argparse.ArgumentParser(prog="pinpoint-fg", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="pinpoint-fg",
+        description="Track the 6-DoF pose of a grasped suture needle through recorded runs (PinPoint on GTSAM): "
+                    "simulate or import runs, track them (svn, svgd, pf, map, mht), evaluate and benchmark. "
+                    "`pinpoint-fg COMMAND --help` for each command; bad input exits with code 2 and one line.")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("validate", help="check a recorded run against the v1 format")
@@ -431,9 +435,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_validate)
 
     s = sub.add_parser("simulate", help="write a simulated recorded run")
-    s.add_argument("--scenario", choices=SCENARIOS, default="normal")
-    s.add_argument("--frames", type=_count, default=300)
-    s.add_argument("--seed", type=_seed, default=0)
+    s.add_argument("--scenario", choices=SCENARIOS, default="normal", help="default: normal")
+    s.add_argument("--frames", type=_count, default=300, help="default: 300 (10 s at 30 fps)")
+    s.add_argument("--seed", type=_seed, default=0, help="default: 0 (a run is deterministic per seed)")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--images", action="store_true", help="also render camera images with the checkerboard")

@@ -86,9 +86,15 @@ def test_evaluate_and_ablate(runs: dict[str, Path], tmp_path: Path, capsys: pyte
     rep = tmp_path / "report"
     capsys.readouterr()
     assert main(["evaluate", str(a), str(b), "--out", str(rep)]) == 0
-    assert "partial:" not in capsys.readouterr().out  # both results cover the whole run
+    printed = capsys.readouterr().out
+    assert "partial:" not in printed  # both results cover the whole run
+    assert "no modes.csv" not in printed  # every tracker writes its modes
     assert (rep / "summary.csv").exists() and (rep / "tables.md").exists()
     assert list(rep.glob("*.png"))
+    (a / "modes.csv").unlink()  # the modes are then the particles': said, not silent
+    assert main(["evaluate", str(a), str(b), "--out", str(rep), "--overwrite"]) == 0
+    notes = [ln for ln in capsys.readouterr().out.splitlines() if "no modes.csv" in ln]
+    assert notes == [f"note: {a} has no modes.csv: its modes are recomputed from its particles"]
     abl = tmp_path / "ablation"
     assert main(["ablate", str(runs["normal"]), "--out", str(abl), "--jobs", "2", "--frames", "6"]) == 0
     tables = (abl / "tables.md").read_text()

@@ -153,3 +153,13 @@ def test_a_run_failing_before_it_writes_leaves_no_directory_and_evaluate_names_a
     assert notes == [f"note: skipped {out / 'bad'}: empty, not a result (what a batch run that failed before "
                      f"writing anything left), beside the results in {out}",
                      f"note: skipped {out / 'notes'}: not a result (no result.json), beside the results in {out}"]
+
+
+def test_an_unreachable_scheduler_is_one_line_and_leaves_no_out_directory(
+        runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "new" / "results"
+    assert main(["batch", str(runs[0]), "--method", "map", "--scheduler", "tcp://127.0.0.1:1",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--scheduler" in err[0] and "cannot connect" in err[0]
+    assert not (tmp_path / "new").exists()  # the directories batch created are removed again

@@ -53,7 +53,7 @@ class ResultModes:
     peaks: list
     """(F,) list of (M_f, 4, 4) mode peak poses (empty (0, 4, 4) where no modes)."""
     source: str
-    """``"modes.csv"``, ``"particles"`` (recomputed) or ``"none"``."""
+    """``"modes.csv"``, ``"particles"`` (recomputed; ``evaluate`` prints a ``note:`` line) or ``"none"``."""
 
     @property
     def has_modes(self) -> np.ndarray:

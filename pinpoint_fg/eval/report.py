@@ -974,6 +974,9 @@ def evaluate_results(
             + no_truth_text(evals))
     notes = [skipped_dir_note(d) for d in skipped]
     notes += [left_out_note(recs[root], gone, " of the scores") for root, gone in left_out.items() if gone]
+    # every tracker writes modes.csv; without it (an older result, or the file removed) the modes are the particles'
+    notes += [f"note: {res.root} has no {MODES_CSV}: its modes are recomputed from its particles"
+              for (res, _, _, _), m in zip(loaded, modes, strict=True) if m.source == "particles"]
     if notes:
         text += "\n\n" + "\n".join(notes)
     return EvaluationReport(evaluations=evals, text=text, table_ii=t2, table_iii=t3, files=files)

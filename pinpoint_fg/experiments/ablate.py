@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import multiprocessing
 import re
+import sys
 from collections.abc import Sequence
 from concurrent.futures import Future, as_completed
 from dataclasses import dataclass
@@ -109,12 +110,16 @@ def ablation_jobs(
 
 
 def run_jobs(
-    jobs: Sequence[AblationJob], workers: int = 2, show_progress: bool = True
+    jobs: Sequence[AblationJob], workers: int = 2, show_progress: bool | None = None
 ) -> tuple[list[str], list[str]]:
-    """Run tracking jobs (in ``workers`` processes when > 1); returns (result dirs, failure messages)."""
+    """Run tracking jobs (in ``workers`` processes when > 1); returns (result dirs, failure messages).
+
+    ``show_progress`` None: a bar only when stderr is a terminal (as ``track``), not in a redirected log."""
     done: list[str] = []
     failures: list[str] = []
     errors: list[BaseException] = []
+    if show_progress is None:
+        show_progress = sys.stderr.isatty()
     bar = tqdm(total=len(jobs), desc="ablate", unit="run", disable=not show_progress)
     try:
         if workers <= 1:

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from pinpoint_fg.errors import InputError, path_argument, path_list, refuse_repeated
-from pinpoint_fg.io.outdir import prepare_output_dir
+from pinpoint_fg.io.outdir import missing_dirs, prepare_output_dir, remove_empty_dirs
 from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.noise import NoiseConfig
 from pinpoint_fg.track import METHODS, track_recording
@@ -147,6 +147,7 @@ def run_batch(
     from distributed import Client, LocalCluster, as_completed
 
     out_dir = path_argument("out_dir", out_dir).absolute()  # "" was the current directory
+    created = missing_dirs(out_dir)  # removed again (while still empty) when no task could start
     paths, options = _prepare(runs, method, out_dir, workers, track_options)
     out_dirs = {p: out_dir / name for p, name in zip(paths, result_dir_names(paths), strict=True)}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -181,6 +182,9 @@ def run_batch(
                 if on_done is not None:
                     status, text = done[run]
                     on_done(run, out_dirs[run], None if status == "ok" else text)
+    except BaseException:
+        remove_empty_dirs(created)  # e.g. no scheduler at --scheduler: nothing was written
+        raise
     finally:
         if cluster is not None:
             cluster.close()

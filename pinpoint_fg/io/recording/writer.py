@@ -8,7 +8,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import tempfile
 from collections.abc import Iterable
 from dataclasses import replace
@@ -20,6 +19,7 @@ import numpy as np
 
 from factors.geometry import xyz_quat_from_pose
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.atomic import atomic_write
 from pinpoint_fg.io.recording.schema import (
     COLUMN_GROUPS,
     FORMAT_NAME,
@@ -190,14 +190,8 @@ def check_recording_info(info: RecordingInfo, target: Path, camera_source: tuple
 
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same directory and ``os.replace``."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as f:
+        f.write(text)
 
 
 def _mask_to_png_array(mask: Any, width: int, height: int, frame: int) -> np.ndarray:
@@ -372,13 +366,7 @@ def replace_ground_truth(run_dir: str | Path, gt_by_frame: dict[int, np.ndarray 
     unknown = sorted(set(new_cells) - seen)
     if unknown:
         raise ValueError(f"ground truth given for frames not in {csv_path}: {unknown[:10]}")
-    fd, tmp = tempfile.mkstemp(dir=csv_path.parent, prefix=f".{csv_path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as out:
-            w = csv.writer(out, lineterminator="\n")
-            w.writerow(header)
-            w.writerows(body)
-        os.replace(tmp, csv_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(csv_path) as out:
+        w = csv.writer(out, lineterminator="\n")
+        w.writerow(header)
+        w.writerows(body)

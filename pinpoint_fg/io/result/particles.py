@@ -10,8 +10,6 @@ declare more data than it holds.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -21,6 +19,7 @@ import numpy as np
 
 from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.atomic import atomic_write
 from pinpoint_fg.io.recording.schema import QUAT_NORM_TOL, shown
 from pinpoint_fg.io.result.schema import (
     MAX_ABS_RESULT_METRES,
@@ -124,14 +123,8 @@ class ParticleWriter:
         if self.weighted:
             arrays["weight"] = np.stack(self._weight) if F else np.zeros((0, n))
         path = self.out_dir / PARTICLES_NPZ
-        fd, tmp = tempfile.mkstemp(dir=self.out_dir, prefix=f".{PARTICLES_NPZ}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **arrays)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_write(path, binary=True) as fh:
+            np.savez(fh, **arrays)
         self._npz_frames = F
         self._npz_time = time.monotonic()
 

@@ -416,9 +416,10 @@ def _add_conic_model_options(s: argparse.ArgumentParser) -> None:
     s.add_argument("--conic-correlation-px", type=_correlation_px, default=None, metavar="PX",
                    help="correlation length of the backbone residuals along the arc (0: independent pixels); "
                         "default: the noise file's, else 0")
-    s.add_argument("--conic-distance", choices=("sampson", "geometric"), default="sampson",
-                   help="backbone pixel to the image conic: first-order Sampson distance (default, the paper's) or "
-                        "the exact geometric distance (better for a needle seen nearly edge-on)")
+    s.add_argument("--conic-distance", choices=("sampson", "geometric"), default=None,
+                   help="backbone pixel to the image conic: first-order Sampson distance (the paper's) or the exact "
+                        "geometric distance (better for a needle seen nearly edge-on); default: the noise file's, "
+                        "else sampson")
 
 
 def build_parser() -> argparse.ArgumentParser:

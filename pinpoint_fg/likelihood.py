@@ -44,11 +44,8 @@ from factors.gtsam_factors import (
     conic_pixel_factors,
 )
 from factors.robust import RobustLoss
-from pinpoint_fg.noise import NoiseConfig, ResidualNoise
+from pinpoint_fg.noise import CONIC_DISTANCES, NoiseConfig, ResidualNoise
 from pinpoint_fg.observation import Observation
-
-#: The backbone residual's distances (:attr:`MeasurementModel.conic_distance`).
-CONIC_DISTANCES = ("sampson", "geometric")
 
 #: Names accepted by ``--disable`` and what they switch off.
 SWITCH_NAMES = ("dense", "sparse", "tip", "tail", "grasp-position", "grasp-perpendicular", "motion")

@@ -16,7 +16,11 @@ without it keeps :data:`DEFAULT_ROBUST`)::
 
 the robust loss of each measurement residual (:mod:`factors.robust`, thresholds in whitened units), and
 optionally ``"conic_correlation_px": ell`` (default 0): the correlation length of the backbone residuals along
-the arc (:mod:`factors.conic_correlation`; 0 = independent pixels, the paper's model).
+the arc (:mod:`factors.conic_correlation`; 0 = independent pixels, the paper's model), and
+``"conic_distance": "sampson" | "geometric"``: the backbone distance the conic noise was calibrated for
+(``calibrate --conic-distance``; absent in files written before it was recorded, and then any distance is
+accepted). ``track`` tracks with the file's distance unless told otherwise, and refuses another one: a sigma
+fitted to one distance does not describe the other (their residuals differ most near edge-on, where it matters).
 Units are those of the residual:
 pixels (tip, tail, conic), metres (grasp_position, camera axes), unitless
 (grasp_perpendicular), and the tangent ``[omega (rad); v (m)]`` of the motion residual
@@ -231,6 +235,11 @@ def _default_residuals() -> dict[str, ResidualNoise]:
     return out
 
 
+#: The backbone distances a conic noise can be calibrated for
+#: (:attr:`pinpoint_fg.likelihood.MeasurementModel.conic_distance`).
+CONIC_DISTANCES = ("sampson", "geometric")
+
+
 @dataclass(frozen=True)
 class NoiseConfig:
     """Noise of every residual type (defaults: the paper's Table I plus DEFAULT_MOTION_SIGMA)."""
@@ -242,8 +251,14 @@ class NoiseConfig:
     conic_correlation_px: float = 0.0
     """Correlation length (px) of the backbone residuals along the arc (:mod:`factors.conic_correlation`); 0 =
     independent pixels."""
+    conic_distance: str | None = None
+    """The backbone distance the conic noise was calibrated for (one of :data:`CONIC_DISTANCES`); None: not
+    recorded (the defaults, older files), any distance."""
 
     def __post_init__(self) -> None:
+        if self.conic_distance is not None and self.conic_distance not in CONIC_DISTANCES:
+            raise ValueError(f"conic_distance must be one of {', '.join(CONIC_DISTANCES)} or None, "
+                             f"got {self.conic_distance!r}")
         ell = self.conic_correlation_px
         if isinstance(ell, bool) or not isinstance(ell, (int, float)) or not (0.0 <= ell <= MAX_CORRELATION_PX):
             raise ValueError(f"conic_correlation_px must be a number of pixels in [0, {MAX_CORRELATION_PX:g}], "
@@ -276,11 +291,17 @@ class NoiseConfig:
     def with_robust(self, robust: dict[str, RobustLoss]) -> NoiseConfig:
         """A copy with the robust losses replaced by ``robust`` (unlisted residuals: DEFAULT_ROBUST)."""
         return NoiseConfig(residuals=dict(self.residuals), robust=dict(robust),
-                           conic_correlation_px=self.conic_correlation_px)
+                           conic_correlation_px=self.conic_correlation_px, conic_distance=self.conic_distance)
 
     def with_conic_correlation(self, length_px: float) -> NoiseConfig:
         """A copy with the backbone residuals' correlation length set to ``length_px`` (0: independent)."""
-        return NoiseConfig(residuals=dict(self.residuals), robust=dict(self.robust), conic_correlation_px=length_px)
+        return NoiseConfig(residuals=dict(self.residuals), robust=dict(self.robust), conic_correlation_px=length_px,
+                           conic_distance=self.conic_distance)
+
+    def with_conic_distance(self, distance: str) -> NoiseConfig:
+        """A copy recording that its conic noise was calibrated for the backbone distance ``distance``."""
+        return NoiseConfig(residuals=dict(self.residuals), robust=dict(self.robust),
+                           conic_correlation_px=self.conic_correlation_px, conic_distance=distance)
 
     @property
     def process_cov(self) -> np.ndarray:
@@ -299,6 +320,7 @@ class NoiseConfig:
             "robust": {k: ({"loss": v.kind, "k": v.k} if v.active else {"loss": "none"})
                        for k, v in self.robust.items()},
             "conic_correlation_px": self.conic_correlation_px,
+            **({} if self.conic_distance is None else {"conic_distance": self.conic_distance}),
         }
 
     def save(self, path: str | Path) -> None:
@@ -351,7 +373,12 @@ class NoiseConfig:
         if isinstance(ell, bool) or not isinstance(ell, (int, float)) or not (0.0 <= ell <= MAX_CORRELATION_PX):
             raise InputError(f'key "conic_correlation_px" must be a number of pixels in [0, {MAX_CORRELATION_PX:g}], '
                              f"got {ell!r}", file=path)
-        return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path), conic_correlation_px=ell)
+        distance = doc.get("conic_distance")
+        if distance is not None and distance not in CONIC_DISTANCES:
+            raise InputError(f'key "conic_distance" must be one of {", ".join(CONIC_DISTANCES)}, got {distance!r}',
+                             file=path)
+        return cls(residuals=parsed, robust=_load_robust(doc.get("robust", {}), path), conic_correlation_px=ell,
+                   conic_distance=distance)
 
     def process_variance_whitened(self, scale: np.ndarray) -> float:
         """``tr(S^-1 Q S^-1) / 6``: the mean per-axis process variance in the kernel's whitened units."""

@@ -179,7 +179,7 @@ def track_recording(
     blas_threads: int | None = 1,
     spread_scale: str | Path | None = None,
     conic_correlation_px: float | None = None,
-    conic_distance: str = "sampson",
+    conic_distance: str | None = None,
 ) -> Path:
     """Track ``run`` with ``method`` and write the result directory ``out``; returns ``out``.
 
@@ -194,7 +194,9 @@ def track_recording(
     ``robust`` (from :func:`pinpoint_fg.noise.parse_robust_spec`) replaces the robust losses of the
     noise file or the defaults; ``conic_correlation_px`` likewise the backbone residuals' correlation length
     along the arc (:mod:`factors.conic_correlation`; 0: independent pixels, the default). ``conic_distance``:
-    "sampson" (default) or "geometric" (:attr:`~pinpoint_fg.likelihood.MeasurementModel.conic_distance`).
+    "sampson" or "geometric" (:attr:`~pinpoint_fg.likelihood.MeasurementModel.conic_distance`); None: the one the
+    noise file was calibrated for, else "sampson". Another one than the noise file's is refused (:class:`InputError`
+    naming the file's ``conic_distance``): its conic sigma describes the other distance's residuals.
     ``spread_scale``: a file of ``calibrate-spread`` (:mod:`pinpoint_fg.io.spread_scale`); the q95
     columns written are the tracker's bounds times the method's factors, the covariances of ``modes.csv``
     are scaled to match (:func:`~pinpoint_fg.io.spread_scale.scaled_cov_xi`: rotation block ``kappa_rot^2``,
@@ -225,7 +227,7 @@ def track_recording(
             path_argument(name, value)
     if conic_correlation_px is not None:
         NoiseConfig(conic_correlation_px=conic_correlation_px)  # refused here (ValueError), before any output
-    if conic_distance not in CONIC_DISTANCES:
+    if conic_distance is not None and conic_distance not in CONIC_DISTANCES:
         raise ValueError(f"conic_distance must be one of {', '.join(CONIC_DISTANCES)}, got {conic_distance!r}")
     if robust is not None and not isinstance(robust, Mapping):
         raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
@@ -253,6 +255,19 @@ def track_recording(
     return out
 
 
+def _conic_distance(asked: str | None, noise: NoiseConfig | None, noise_file: str | Path | None) -> str:
+    """The backbone distance to track with: ``asked``, else the noise file's, else "sampson"; a noise file
+    calibrated for another distance than ``asked`` is refused (:func:`track_recording`)."""
+    recorded = None if noise is None else noise.conic_distance
+    if asked is None:
+        return recorded or "sampson"
+    if recorded is not None and recorded != asked:
+        raise InputError(f'key "conic_distance": the noise file was calibrated for the {recorded} backbone distance, '
+                         f"not {asked}: track with --conic-distance {recorded}, or calibrate again with "
+                         f"--conic-distance {asked}", file=Path(noise_file) if noise_file is not None else None)
+    return asked
+
+
 def _numerical_failure(exc: Exception) -> bool:
     """True for a tracker's numerical breakdown on degenerate input, reported as one line instead of a traceback:
     GTSAM's indeterminate linear system (a ``RuntimeError``), or non-finite numbers or a pose beyond the format's
@@ -272,7 +287,7 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
            noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
            max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
            offload: Offload, scale: dict | None = None, conic_correlation_px: float | None = None,
-           conic_distance: str = "sampson") -> Path:
+           conic_distance: str | None = None) -> Path:
     """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started.
 
     ``scale``: :func:`~pinpoint_fg.io.spread_scale.settings_entry` of the spread scale, or None.
@@ -285,6 +300,7 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
         noise = (noise or NoiseConfig()).with_robust(robust)
     if conic_correlation_px is not None:
         noise = (noise or NoiseConfig()).with_conic_correlation(conic_correlation_px)
+    conic_distance = _conic_distance(conic_distance, noise, noise_file)
     config = tracker_config(recording, method, particles, window, noise, disable, seed, conic_distance)
     tracker = make_tracker(method, config)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from pinpoint_fg.noise import NoiseConfig, ResidualNoise
 from pinpoint_fg.sim.config import SimConfig
 from pinpoint_fg.sim.kinematics import needle_T_grasper
 from pinpoint_fg.sim.scenarios import SimRun, simulate, simulate_frames
+from pinpoint_fg.track import track_recording
 
 N_FRAMES = 500
 #: An undistorted camera, so keypoint noise added in the image is exactly the residual's noise.
@@ -193,7 +195,8 @@ def test_cli_calibrate_conic_correlation_writes_the_fitted_length(tmp_path: Path
     assert "Conic correlation length" not in capsys.readouterr().out
 
 
-def test_calibrate_with_the_geometric_distance(calib: tuple[SimRun, Path], tmp_path: Path) -> None:
+def test_calibrate_with_the_geometric_distance(calib: tuple[SimRun, Path], tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
     """``--conic-distance geometric`` calibrates the backbone residual the tracker will use: the samples are the
     exact distances at the truth, frame by frame; the other residual types are unchanged."""
     from factors.residuals import conic_geometric_residual
@@ -214,6 +217,17 @@ def test_calibrate_with_the_geometric_distance(calib: tuple[SimRun, Path], tmp_p
     np.testing.assert_array_equal(got, want)
     assert main(["calibrate", str(path), "--conic-distance", "geometric", "--out", str(tmp_path / "g.json")]) == 0
     assert NoiseConfig.load(tmp_path / "g.json")["conic"].sigma[0] != calibrate_runs([path])["conic"].sigma[0]
+    # the file records its distance; track takes it, and refuses the other one (exit 2, one line)
+    assert NoiseConfig.load(tmp_path / "g.json").conic_distance == "geometric"
+    assert calibrate_runs([path]).conic_distance == "sampson"
+    out = track_recording(path, "map", tmp_path / "t", noise_file=tmp_path / "g.json", max_frames=2, progress=False)
+    assert json.loads((out / "result.json").read_text())["settings"]["conic_distance"] == "geometric"
+    capsys.readouterr()
+    assert main(["track", str(path), "--method", "map", "--noise", str(tmp_path / "g.json"), "--conic-distance",
+                 "sampson", "--out", str(tmp_path / "t2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "g.json" in err[0] and "conic_distance" in err[0] and "geometric" in err[0], err
+    assert not (tmp_path / "t2").exists()
     with pytest.raises(ValueError, match="conic_distance"):
         residuals_at_truth(rec, conic_distance="euclid")
 

@@ -93,6 +93,27 @@ def test_the_conic_correlation_length_round_trips_and_bad_ones_are_refused(tmp_p
             NoiseConfig(conic_correlation_px=bad)
 
 
+def test_the_calibrated_conic_distance_round_trips_and_bad_ones_are_refused(tmp_path: Path) -> None:
+    path = tmp_path / "noise.json"
+    noise = NoiseConfig(conic_correlation_px=4.0).with_conic_distance("geometric")
+    noise.save(path)
+    back = NoiseConfig.load(path)
+    assert back.conic_distance == "geometric" and back.conic_correlation_px == 4.0
+    # the copies keep it
+    assert back.with_robust({}).conic_distance == back.with_conic_correlation(0.0).conic_distance == "geometric"
+    doc = NoiseConfig().to_json()
+    assert "conic_distance" not in doc  # the defaults were calibrated for no distance in particular
+    path.write_text(json.dumps(doc))
+    assert NoiseConfig.load(path).conic_distance is None  # a file from before the key: any distance
+    for bad in ("euclid", 3, True, ["sampson"]):
+        doc["conic_distance"] = bad
+        path.write_text(json.dumps(doc))
+        with pytest.raises(InputError, match="conic_distance"):
+            NoiseConfig.load(path)
+    with pytest.raises(ValueError, match="conic_distance"):
+        NoiseConfig(conic_distance="euclid")
+
+
 def test_a_geman_mcclure_loss_round_trips_through_a_noise_file(tmp_path: Path) -> None:
     path = tmp_path / "noise.json"
     robust = parse_robust_spec("conic=gm:3,grasp-perpendicular=huber:1.345")

@@ -257,6 +257,8 @@ def calibrate_runs(runs: list[Path], fit_correlation: bool = False, conic_distan
         for k, v in samples.items():
             pooled[k].append(v)
     noise = noise_from_residuals({k: np.concatenate(v, axis=0) for k, v in pooled.items()})
+    if noise["conic"].count > 0:  # the sigma describes this distance's residuals only (noise.py)
+        noise = noise.with_conic_distance(conic_distance)
     if fit_correlation and noise["conic"].count > 0:
         noise = noise.with_conic_correlation(fit_conic_correlation(conic_frames, noise["conic"]))
     return noise

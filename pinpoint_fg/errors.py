@@ -11,7 +11,8 @@ from pathlib import Path
 class InputError(ValueError):
     """Malformed or unusable input, located as precisely as the reader knows.
 
-    The message reads ``FILE: row R: column C: what is wrong`` with the parts that are known.
+    The message reads ``FILE: row R: column C: what is wrong`` with the parts that are known (``option '--x'``
+    instead of ``column`` when ``column`` names a command-line option).
     """
 
     def __init__(
@@ -34,7 +35,8 @@ class InputError(ValueError):
             shown = repr(column)
             if len(shown) > 80:  # a mangled header can hold a 4000-character name: keep the line readable
                 shown = f"{shown[:60]}...{shown[-12:]} ({len(column)} characters)"
-            parts.append(f"column {shown}")
+            # a command-line option (``column="--workers"``) is not a column of a file
+            parts.append(f"{'option' if column.startswith('--') else 'column'} {shown}")
         parts.append(message)
         super().__init__(": ".join(parts))
 

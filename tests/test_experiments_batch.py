@@ -161,5 +161,5 @@ def test_an_unreachable_scheduler_is_one_line_and_leaves_no_out_directory(
     assert main(["batch", str(runs[0]), "--method", "map", "--scheduler", "tcp://127.0.0.1:1",
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--scheduler" in err[0] and "cannot connect" in err[0]
+    assert len(err) == 1 and "option '--scheduler'" in err[0] and "cannot connect" in err[0]
     assert not (tmp_path / "new").exists()  # the directories batch created are removed again

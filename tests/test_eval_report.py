@@ -192,6 +192,14 @@ def test_cli_evaluate_prints_the_comparison(setup, tmp_path: Path, capsys: pytes
     assert evaluate([results["map"]], out=tmp_path / "e2").splitlines()[0].startswith("recording")
 
 
+def test_the_accuracy_floor_is_printed_once_per_likelihood_not_per_method(setup, tmp_path: Path) -> None:  # noqa: ANN001
+    rec, results, _ = setup
+    svgd = _write_result(tmp_path / "svgd", rec, "svgd", "bimodal")
+    text = evaluate_results([results["svn"], svgd], out=tmp_path / "e", figures=False).text
+    floor = [ln for ln in text.splitlines() if ln.startswith("accuracy floor")]
+    assert len(floor) == 1 and floor[0].count(" mm / ") == 1, floor  # svgd's model is svn's full one
+
+
 def test_recording_given_explicitly_or_missing(setup, tmp_path: Path) -> None:  # noqa: ANN001
     rec, _, _ = setup
     r = _write_result(tmp_path / "nopath", rec, "map", "single", recording_path=None, frames=3)

@@ -609,7 +609,8 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     lines = [line(header), "-" * len(line(header)), *(line(x) for x in rows)]
     floors = {}
     for ev in evals:
-        key = (ev.row["recording"], ev.variant if ev.method in ("svn", "svgd") else "full")
+        # the floor depends on the likelihood (its switches), not on the method: svgd shares the full model's
+        key = (ev.row["recording"], ev.variant if ev.method == "svn" else "full")
         if np.isfinite(ev.row["floor_trans_mm"]):
             floors.setdefault(key, (ev.row["floor_trans_mm"], ev.row["floor_rot_deg"]))
     if floors:
@@ -626,10 +627,11 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
         lines += _per_result(evals, lambda r: (
             f"bimodal GMM {_pct(r['bimodal_share'])}, modes "
             f"{_pct(r['bimodal_modes_share'])}; truth kept modes {_pct(r['truth_kept_modes_share'])}, "
-            f"particles {_pct(r['truth_kept_particles_share'])}; vs reference: GMM "
-            f"{_pct(r['bimodal_ref_multi_rate'])} / {_pct(r['bimodal_ref_single_rate'])}, modes "
-            f"{_pct(r['bimodal_modes_ref_multi_rate'])} / {_pct(r['bimodal_modes_ref_single_rate'])} "
-            f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)"))
+            f"particles {_pct(r['truth_kept_particles_share'])}; " + (
+                f"vs reference: GMM {_pct(r['bimodal_ref_multi_rate'])} / {_pct(r['bimodal_ref_single_rate'])}, "
+                f"modes {_pct(r['bimodal_modes_ref_multi_rate'])} / {_pct(r['bimodal_modes_ref_single_rate'])} "
+                f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)" if r.get("reference") else
+                "no reference (an mht result of this recording among the inputs, or --reference)")))
     smoothed = [ev for ev in evals if ev.row["smoothed_frames"] > 0]
     if smoothed:
         lines += ["", "fixed-lag smoothed poses (smoothed.csv) vs the filtered estimates of the same frames:"]

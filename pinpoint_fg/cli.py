@@ -232,6 +232,8 @@ def _cmd_calibrate_spread(args: argparse.Namespace) -> int:
     from pinpoint_fg.io.outdir import prepare_output_file
     from pinpoint_fg.io.spread_scale import format_scale
 
+    if not 0.0 < args.mode_gate_deg <= 180.0:  # named as the option here (the library names its argument)
+        raise InputError(f"must lie in (0, 180] degrees, got {args.mode_gate_deg:g}", column="--mode-gate-deg")
     prepare_output_file(args.out, args.overwrite, "spread scale", inputs=args.results)
     notes: list[str] = []
     scale = fit_spread_scale(args.results, mode_gate_rad=math.radians(args.mode_gate_deg), notes=notes)

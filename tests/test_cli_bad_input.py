@@ -396,6 +396,16 @@ def test_hand_edited_negative_q95_or_latency_is_located(column: str, map_result:
         assert not (tmp_path / "s.json").exists()
 
 
+@pytest.mark.parametrize("gate", ["nan", "0", "-5", "181", "1e400"])
+def test_calibrate_spread_names_its_mode_gate_option(gate: str, map_result: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: "column 'mode_gate'", a column of no file."""
+    assert main(["calibrate-spread", str(map_result), "--mode-gate-deg", gate, "--out", str(tmp_path / "s.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: option '--mode-gate-deg': must lie in (0, 180]"), err
+    assert not (tmp_path / "s.json").exists()
+
+
 def test_result_writer_refuses_a_negative_q95(map_result: Path, tmp_path: Path) -> None:
     from pinpoint_fg.estimate import Estimate
     from pinpoint_fg.io.result.writer import ResultWriter

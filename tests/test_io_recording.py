@@ -331,7 +331,7 @@ def test_frame_not_an_integer(run) -> None:
     assert_located(err, "frames.csv", 2, "frame")
 
 
-@pytest.mark.parametrize("kind", ["dotdot", "absolute", "symlink", "missing", "backslash"])
+@pytest.mark.parametrize("kind", ["dotdot", "absolute", "symlink", "missing", "backslash", "directory", "fifo"])
 def test_mask_path_must_stay_inside_the_run(run, tmp_path: Path, kind: str) -> None:
     root = run[0]
     outside = tmp_path / "outside.png"
@@ -345,13 +345,19 @@ def test_mask_path_must_stay_inside_the_run(run, tmp_path: Path, kind: str) -> N
         value = "masks/link.png"
     elif kind == "missing":
         value = "masks/nope.png"
+    elif kind == "directory":
+        value = "masks"
+    elif kind == "fifo":
+        os.mkfifo(root / "masks" / "pipe.png")  # never opened: a reader would block on it
+        value = "masks/pipe.png"
     else:
         value = "masks\\000003.png"
     set_cell(root, 1, "mask", value)
     err = the_error(root)
     assert_located(err, "frames.csv", 1, "mask")
     expected = {"dotdot": "'..'", "absolute": "absolute", "symlink": "outside the run",
-                "missing": "no such file", "backslash": "backslash"}[kind]
+                "missing": "no such file", "backslash": "backslash", "directory": "not a regular file",
+                "fifo": "not a regular file"}[kind]
     assert expected in str(err)
 
 

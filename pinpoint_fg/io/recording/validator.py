@@ -82,6 +82,8 @@ def _resolve_inside(root_resolved: Path, cell: str) -> tuple[Path | None, str | 
         if not target.is_relative_to(root_resolved):
             return None, f"path {shown(cell)} resolves to {target}, outside the run directory (symlink)"
         if not target.is_file():
+            if target.exists():  # a directory, FIFO or device is there: "no such file" sent users looking for it
+                return None, f"not a regular file: {root_resolved / cell}"
             return None, f"no such file: {root_resolved / cell}"
     except (OSError, ValueError, RuntimeError) as exc:  # ELOOP, ENAMETOOLONG, ... from the file system
         why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)

@@ -38,7 +38,8 @@ deleted once the final npz is in place. Trade-off: after a crash an outside tool
 Numbers are written with ``repr`` (shortest exact text); poses as ``x y z qw qx qy qz`` with a
 unit quaternion (w >= 0), read back within ~1e-16 of the matrix written. NaN is allowed (written
 ``nan``) in ``q95_*``, ``latency_ms`` and extra columns, nowhere else; ``q95_*`` and ``latency_ms`` are never
-negative and at most :data:`MAX_RESULT_Q95`. Rows in error messages are
+negative, and ``q95_*`` at most :data:`MAX_RESULT_Q95` (``evaluate`` squares them; a duration has no such use, so
+``latency_ms`` has no upper bound). Rows in error messages are
 1-based data rows (header not counted); for particles.npz the row is the 1-based frame position.
 """
 

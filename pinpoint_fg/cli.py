@@ -10,6 +10,7 @@ import argparse
 import os
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.jsonfile import INT64_MAX
@@ -424,9 +425,17 @@ def _add_conic_model_options(s: argparse.ArgumentParser) -> None:
                         "else sampson")
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse's parser whose usage errors are one line (exit 2), like every other refusal of bad input: the
+    usage block argparse prints first is 6-8 lines, and ``--help`` shows it."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {self.prog}: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of every subcommand."""
-    p = argparse.ArgumentParser(
+    """The argument parser of every subcommand (subparsers inherit the one-line errors)."""
+    p = _OneLineParser(
         prog="pinpoint-fg",
         description="Track the 6-DoF pose of a grasped suture needle through recorded runs (PinPoint on GTSAM): "
                     "simulate or import runs, track them (svn, svgd, pf, map, mht), evaluate and benchmark. "

@@ -42,7 +42,7 @@ import numpy as np
 
 from factors.robust import NO_LOSS, RobustLoss
 from pinpoint_fg.errors import InputError, path_argument
-from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.jsonfile import json_shown, load_json
 
 #: Residual types and their dimensions.
 RESIDUAL_DIMS: dict[str, int] = {
@@ -352,7 +352,7 @@ class NoiseConfig:
             if not isinstance(entry, dict) or "cov" not in entry:
                 raise InputError(f'{where} must be an object with "cov" (and optionally "mean")', file=path)
             d = RESIDUAL_DIMS[k]
-            _check_entry_types(entry, where, path)
+            _check_entry_types(entry, where, path, d)
             try:
                 mean = np.asarray(entry.get("mean", [0.0] * d), dtype=float).reshape(-1)
                 cov = np.atleast_2d(np.asarray(entry["cov"], dtype=float))
@@ -420,14 +420,34 @@ def _variance_problem(name: str, cov: np.ndarray) -> str | None:
             f"deviation of {np.sqrt(lo):g} to 1e6 {RESIDUAL_UNITS.get(name, 'in its unit')})")
 
 
-def _check_entry_types(entry: dict, where: str, path: Path) -> None:
-    """JSON types of one ``residuals`` entry: numbers (not booleans) in mean/cov, a non-negative integer count."""
-    def has_bool(x: object) -> bool:
-        return isinstance(x, bool) or (isinstance(x, list) and any(has_bool(y) for y in x))
+def _array_problem(value: object, shape: tuple[int, ...], at: str = "") -> str | None:
+    """Why ``value`` (parsed JSON) is not nested lists of ``shape`` holding finite numbers (not booleans); None if
+    it is. The element is named (``[1][0]``), so NumPy's "inhomogeneous shape" never reaches the user."""
+    if not isinstance(value, list) or len(value) != shape[0]:
+        what = (f"a list of {shape[0]} numbers" if len(shape) == 1
+                else f"a {shape[0]}x{shape[1]} array (rows of numbers)")
+        return f"{at or 'it'} must be {what}, got {json_shown(value)}"
+    for i, v in enumerate(value):
+        if len(shape) > 1:
+            why = _array_problem(v, shape[1:], f"{at}[{i}]")
+            if why is not None:
+                return why
+        elif isinstance(v, bool) or not isinstance(v, int | float):
+            return f"{at}[{i}] must be a number, got {json_shown(v)}"
+        elif not math.isfinite(v):
+            return f"{at}[{i}] must be finite, got {v!r} (JSON Infinity/NaN, or beyond a double)"
+    return None
 
-    for key in ("mean", "cov"):
-        if has_bool(entry.get(key)):
-            raise InputError(f"{where}: {key!r} must hold numbers, not booleans", file=path)
+
+def _check_entry_types(entry: dict, where: str, path: Path, dim: int) -> None:
+    """JSON types of one ``residuals`` entry: ``mean`` a list of ``dim`` finite numbers (optional), ``cov`` a
+    ``dim x dim`` array of them (numbers, not booleans), a non-negative integer count."""
+    for key, shape in (("mean", (dim,)), ("cov", (dim, dim))):
+        if key == "mean" and key not in entry:
+            continue
+        why = _array_problem(entry[key], shape)
+        if why is not None:
+            raise InputError(f"{where}: {key!r}: {why.replace('it must', 'must', 1)}", file=path)
     count = entry.get("count", 0)
     if isinstance(count, bool) or not isinstance(count, int) or count < 0:
         raise InputError(f"{where}: 'count' must be a non-negative integer, got {count!r}", file=path)

@@ -121,3 +121,23 @@ def test_a_geman_mcclure_loss_round_trips_through_a_noise_file(tmp_path: Path) -
     assert json.loads(path.read_text())["robust"]["conic"] == {"loss": "gm", "k": 3.0}
     assert NoiseConfig.load(path).robust["conic"] == RobustLoss("gm", 3.0)
     assert format_robust(NoiseConfig.load(path).robust) == "conic=gm:3,grasp-perpendicular=huber:1.345"
+
+
+@pytest.mark.parametrize(("name", "key", "value", "says"), [
+    ("tip", "cov", [[float("inf"), 0.0], [0.0, 1.0]], "'cov': [0][0] must be finite"),  # JSON Infinity, 1e400
+    ("tip", "cov", [[1.0, 0.0], [0.0]], "'cov': [1] must be a list of 2 numbers"),  # was NumPy's "inhomogeneous"
+    ("tip", "cov", [[True, 0.0], [0.0, 1.0]], "'cov': [0][0] must be a number, got true"),
+    ("motion", "mean", float("inf"), "'mean': must be a list of 6 numbers, got Infinity"),  # was a shape mismatch
+    ("tip", "mean", [None, 0.0], "'mean': [0] must be a number, got null"),  # was "NaN or infinite"
+    ("tip", "mean", ["x", 0.0], "'mean': [0] must be a number, got \"x\""),  # was float()'s message
+])
+def test_malformed_noise_arrays_name_the_element(name: str, key: str, value: object, says: str,
+                                                 tmp_path: Path) -> None:
+    doc = copy.deepcopy(NoiseConfig().to_json())
+    doc["residuals"][name][key] = value
+    path = tmp_path / "noise.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as exc:
+        NoiseConfig.load(path)
+    assert str(exc.value) == f'{path}: key "residuals.{name}": {says}' or says in str(exc.value), str(exc.value)
+    assert f'key "residuals.{name}"' in str(exc.value) and says in str(exc.value)

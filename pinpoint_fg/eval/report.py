@@ -71,10 +71,11 @@ from pinpoint_fg.eval.modes import (
     truth_kept,
 )
 from pinpoint_fg.eval.spread_calibration import coverage, scaled_result
+from pinpoint_fg.io.jsonfile import json_shown
 from pinpoint_fg.io.outdir import prepare_output_dir
 from pinpoint_fg.io.recording.fingerprint import recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.io.recording.schema import Recording, json_shown
+from pinpoint_fg.io.recording.schema import Recording
 from pinpoint_fg.io.result.reader import (
     check_tracked_on,
     expand_result_dirs,

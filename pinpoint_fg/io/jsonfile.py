@@ -30,6 +30,12 @@ INT64_MAX = 2**63 - 1
 _TOKENS = re.compile(r'"[^"\\]*+(?:\\.[^"\\]*+)*+"|[\[\]{}]', re.DOTALL)
 
 
+def json_shown(v: Any, limit: int = 60) -> str:
+    """A JSON value as text for an error message, shortened to ``limit`` characters."""
+    text = json.dumps(v)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def json_depth(text: str) -> int:
     """Largest nesting depth of ``[``/``{`` in ``text`` (brackets inside strings ignored), without recursion."""
     depth = deepest = 0

@@ -34,8 +34,7 @@ from typing import Any
 import numpy as np
 
 from pinpoint_fg.errors import InputError, path_argument
-from pinpoint_fg.io.jsonfile import load_json
-from pinpoint_fg.io.recording.schema import json_shown
+from pinpoint_fg.io.jsonfile import json_shown, load_json
 
 SPREAD_SCALE_FORMAT = "pinpoint-spread-scale"
 SPREAD_SCALE_VERSION = 1

@@ -42,12 +42,10 @@ Decisions the format leaves open (stated here so readers and writers agree):
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
-from typing import Any
 
 import numpy as np
 
@@ -193,12 +191,6 @@ def shown(cell: str, limit: int = 80) -> str:
     """``repr`` of a cell, shortened to ``limit`` characters (a 4000-character path is not echoed whole)."""
     text = repr(cell)
     return text if len(text) <= limit else f"{text[: limit - 20]}...{text[-12:]} ({len(cell)} characters)"
-
-
-def json_shown(v: Any, limit: int = 60) -> str:
-    """A JSON value as text for an error message, shortened to ``limit`` characters."""
-    text = json.dumps(v)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 @dataclass(frozen=True, eq=False)

@@ -25,7 +25,7 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat
 from pinpoint_fg.errors import InputError, path_argument
-from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.jsonfile import json_shown, load_json
 from pinpoint_fg.io.recording.png import image_file_problem
 from pinpoint_fg.io.recording.schema import (
     COLUMN_GROUPS,
@@ -54,7 +54,6 @@ from pinpoint_fg.io.recording.schema import (
     Recording,
     RecordingInfo,
     gt_depth_problem,
-    json_shown,
     path_problem,
     shown,
 )

@@ -17,11 +17,11 @@ import numpy as np
 
 from factors.geometry import pose_from_xyz_quat
 from pinpoint_fg.errors import InputError, path_argument, path_list
-from pinpoint_fg.io.jsonfile import load_json
+from pinpoint_fg.io.jsonfile import json_shown, load_json
 from pinpoint_fg.io.outdir import path_text
 from pinpoint_fg.io.recording.fingerprint import FINGERPRINT_KEY, recording_fingerprint
 from pinpoint_fg.io.recording.reader import read_recording
-from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, Recording, json_shown, shown
+from pinpoint_fg.io.recording.schema import MAX_FRAME_INDEX, QUAT_NORM_TOL, Recording, shown
 from pinpoint_fg.io.result.particles import read_journal, read_npz
 from pinpoint_fg.io.result.schema import (
     COV_COLUMNS,

@@ -386,7 +386,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
         args.runs, args.method, args.out, scheduler=args.scheduler, workers=args.workers, on_done=done,
         particles=args.particles, window=args.window, noise_file=args.noise, disable=args.disable, seed=args.seed,
         overwrite=args.overwrite, spread_scale=args.spread_scale, conic_correlation_px=args.conic_correlation_px,
-        conic_distance=args.conic_distance,
+        conic_distance=args.conic_distance, robust=args.robust,
     )
     for run, error in outcome.failures.items():
         print(f"error: {run}: {error}" if str(run) not in error else f"error: {error}", file=sys.stderr)
@@ -406,12 +406,21 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
+    _add_robust_option(s)
     _add_conic_model_options(s)
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",
                    help="write q95 times the method's factors from `calibrate-spread` (recorded in result.json)")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_batch)
+
+
+def _add_robust_option(s: argparse.ArgumentParser) -> None:
+    """``--robust`` (track and batch)."""
+    s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
+                   help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none; "
+                        "losses none, huber, cauchy, gm); 'none' switches all off; default: the noise file's or the "
+                        "built-in conic=gm:3,grasp-perpendicular=huber:1.345")
 
 
 def _add_conic_model_options(s: argparse.ArgumentParser) -> None:
@@ -473,10 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--window", type=_count, default=1, help="window length L (1 = filter)")
     s.add_argument("--noise", type=Path, default=None, help="noise file from `calibrate`")
     s.add_argument("--disable", type=_disable_list, default=(), help="comma list: " + ",".join(SWITCHES))
-    s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
-                   help="robust losses, e.g. conic=huber:1.345,grasp-perpendicular=cauchy:1 (unlisted: none; "
-                        "losses none, huber, cauchy, gm); 'none' switches all off; default: the noise file's or the "
-                        "built-in conic=gm:3,grasp-perpendicular=huber:1.345")
+    _add_robust_option(s)
     _add_conic_model_options(s)
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--spread-scale", type=Path, default=None, metavar="FILE",

@@ -255,7 +255,7 @@ def track_recording(
     return out
 
 
-def _conic_distance(asked: str | None, noise: NoiseConfig | None, noise_file: str | Path | None) -> str:
+def resolve_conic_distance(asked: str | None, noise: NoiseConfig | None, noise_file: str | Path | None) -> str:
     """The backbone distance to track with: ``asked``, else the noise file's, else "sampson"; a noise file
     calibrated for another distance than ``asked`` is refused (:func:`track_recording`)."""
     recorded = None if noise is None else noise.conic_distance
@@ -300,7 +300,7 @@ def _track(run: str | Path, method: str, out: Path, particles: int | None, windo
         noise = (noise or NoiseConfig()).with_robust(robust)
     if conic_correlation_px is not None:
         noise = (noise or NoiseConfig()).with_conic_correlation(conic_correlation_px)
-    conic_distance = _conic_distance(conic_distance, noise, noise_file)
+    conic_distance = resolve_conic_distance(conic_distance, noise, noise_file)
     config = tracker_config(recording, method, particles, window, noise, disable, seed, conic_distance)
     tracker = make_tracker(method, config)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]

@@ -163,3 +163,22 @@ def test_an_unreachable_scheduler_is_one_line_and_leaves_no_out_directory(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "option '--scheduler'" in err[0] and "cannot connect" in err[0]
     assert not (tmp_path / "new").exists()  # the directories batch created are removed again
+
+
+def test_batch_takes_tracks_robust_losses_and_checks_the_noise_files_distance_once(
+        runs: list[Path], scheduler: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "robust"
+    assert main(["batch", str(runs[0]), "--method", "map", "--robust", "conic=huber:2", "--scheduler", scheduler,
+                 "--out", str(out)]) == 0
+    settings = json.loads((out / "run" / "result.json").read_text())["settings"]
+    assert settings["robust"] == "conic=huber:2"
+    from pinpoint_fg.noise import NoiseConfig
+
+    noise = tmp_path / "geometric.json"
+    NoiseConfig().with_conic_distance("geometric").save(noise)
+    capsys.readouterr()
+    assert main(["batch", str(runs[0]), "--method", "map", "--noise", str(noise), "--conic-distance", "sampson",
+                 "--scheduler", scheduler, "--out", str(tmp_path / "refused")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "geometric.json" in err[0] and "conic_distance" in err[0], err
+    assert not (tmp_path / "refused").exists()

@@ -41,7 +41,7 @@ from pinpoint_fg.errors import InputError, path_argument, path_list, refuse_repe
 from pinpoint_fg.io.outdir import missing_dirs, prepare_output_dir, remove_empty_dirs
 from pinpoint_fg.io.spread_scale import SpreadScale, settings_entry
 from pinpoint_fg.noise import NoiseConfig
-from pinpoint_fg.track import METHODS, track_recording
+from pinpoint_fg.track import METHODS, resolve_conic_distance, track_recording
 
 #: track_recording keywords a batch passes through (everything but run, method, out, progress).
 TRACK_OPTIONS = tuple(p for p in inspect.signature(track_recording).parameters
@@ -119,7 +119,8 @@ def _prepare(runs: Sequence[str | Path], method: str, out_dir: Path, workers: in
     options = dict(options)
     if options.get("noise_file") is not None:
         noise = Path(options["noise_file"]).absolute()
-        NoiseConfig.load(noise)  # a bad noise file fails every run: say so once, before starting
+        # a bad noise file, or one calibrated for another backbone distance, fails every run: say so once, before
+        resolve_conic_distance(options.get("conic_distance"), NoiseConfig.load(noise), noise)
         options["noise_file"] = str(noise)
     if options.get("spread_scale") is not None:
         scale = Path(options["spread_scale"]).absolute()

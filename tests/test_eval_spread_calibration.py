@@ -221,7 +221,11 @@ def test_cli_calibrate_spread_and_evaluate_with_it(data, tmp_path: Path, capsys:
 
     rep = tmp_path / "eval"
     assert main(["evaluate", str(results["svn"]), "--out", str(rep), "--spread-scale", str(out)]) == 0
-    assert "raw -> scaled" in capsys.readouterr().out
+    printed = capsys.readouterr().out.splitlines()
+    head = next(i for i, ln in enumerate(printed) if "raw -> scaled" in ln)
+    table = printed[head + 1: head + 3]  # header and the one result's row, each value under its head
+    last = table[1].split()[-1]  # the scaled coverage, e.g. 97%/95%
+    assert table[0].startswith("recording") and table[0].index("scaled cover t/r") == len(table[1]) - len(last)
     with open(rep / "summary.csv", newline="") as fh:
         row = next(csv.DictReader(fh))
     s = scale.methods["svn"]

@@ -650,13 +650,13 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
 
 def coverage_text(evals: Sequence[ResultEvaluation], source: str) -> str:
     """q95 coverage per result before and after the spread scale ``source`` (rows need ``coverage_raw_*``)."""
-    lines = [f"q95 coverage (share of frames whose error is within q95), raw -> scaled by {source}:",
-             "recording  method  kappa t/r  raw cover t/r  scaled cover t/r"]
-    for ev in evals:
-        r = ev.row
-        lines.append(f"  {r['recording']}  {ev.label}  {r['spread_kappa_trans']:.2f}/{r['spread_kappa_rot']:.2f}  "
-                     f"{_pct(r['coverage_raw_trans'])}/{_pct(r['coverage_raw_rot'])}  "
-                     f"{_pct(r['coverage_trans'])}/{_pct(r['coverage_rot'])}")
+    header = ("recording", "method", "kappa t/r", "raw cover t/r", "scaled cover t/r")
+    rows = [(ev.row["recording"], ev.label, f"{ev.row['spread_kappa_trans']:.2f}/{ev.row['spread_kappa_rot']:.2f}",
+             f"{_pct(ev.row['coverage_raw_trans'])}/{_pct(ev.row['coverage_raw_rot'])}",
+             f"{_pct(ev.row['coverage_trans'])}/{_pct(ev.row['coverage_rot'])}") for ev in evals]
+    widths = [max(len(x[k]) for x in (header, *rows)) for k in range(len(header))]  # columns under their heads
+    lines = [f"q95 coverage (share of frames whose error is within q95), raw -> scaled by {source}:"]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(x, widths, strict=True)).rstrip() for x in (header, *rows)]
     return "\n".join(lines)
 
 

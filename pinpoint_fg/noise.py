@@ -426,7 +426,7 @@ def _array_problem(value: object, shape: tuple[int, ...], at: str = "") -> str |
     if not isinstance(value, list) or len(value) != shape[0]:
         what = (f"a list of {shape[0]} numbers" if len(shape) == 1
                 else f"a {shape[0]}x{shape[1]} array (rows of numbers)")
-        return f"{at or 'it'} must be {what}, got {json_shown(value)}"
+        return f"{at + ' ' if at else ''}must be {what}, got {json_shown(value)}"
     for i, v in enumerate(value):
         if len(shape) > 1:
             why = _array_problem(v, shape[1:], f"{at}[{i}]")
@@ -447,7 +447,7 @@ def _check_entry_types(entry: dict, where: str, path: Path, dim: int) -> None:
             continue
         why = _array_problem(entry[key], shape)
         if why is not None:
-            raise InputError(f"{where}: {key!r}: {why.replace('it must', 'must', 1)}", file=path)
+            raise InputError(f"{where}: {key!r}: {why}", file=path)
     count = entry.get("count", 0)
     if isinstance(count, bool) or not isinstance(count, int) or count < 0:
         raise InputError(f"{where}: 'count' must be a non-negative integer, got {count!r}", file=path)

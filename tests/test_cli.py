@@ -89,7 +89,8 @@ def test_evaluate_and_ablate(runs: dict[str, Path], tmp_path: Path, capsys: pyte
     printed = capsys.readouterr().out
     assert "partial:" not in printed  # both results cover the whole run
     assert "no modes.csv" not in printed  # every tracker writes its modes
-    assert "no reference (an mht result of this recording among the inputs, or --reference)" in printed
+    assert "; no reference\n" in printed
+    assert "(no reference: no mht result of that recording among the inputs and no --reference)" in printed
     assert "(0 / 0 frames)" not in printed  # rates against no reference are not printed as if measured
     assert (rep / "summary.csv").exists() and (rep / "tables.md").exists()
     assert list(rep.glob("*.png"))

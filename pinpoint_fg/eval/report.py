@@ -632,7 +632,9 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
                 f"vs reference: GMM {_pct(r['bimodal_ref_multi_rate'])} / {_pct(r['bimodal_ref_single_rate'])}, "
                 f"modes {_pct(r['bimodal_modes_ref_multi_rate'])} / {_pct(r['bimodal_modes_ref_single_rate'])} "
                 f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)" if r.get("reference") else
-                "no reference (an mht result of this recording among the inputs, or --reference)")))
+                "no reference")))
+        if not all(ev.row.get("reference") for ev in evals):
+            lines.append("  (no reference: no mht result of that recording among the inputs and no --reference)")
     smoothed = [ev for ev in evals if ev.row["smoothed_frames"] > 0]
     if smoothed:
         lines += ["", "fixed-lag smoothed poses (smoothed.csv) vs the filtered estimates of the same frames:"]

@@ -424,7 +424,7 @@ def _array_problem(value: object, shape: tuple[int, ...], at: str = "") -> str |
     """Why ``value`` (parsed JSON) is not nested lists of ``shape`` holding finite numbers (not booleans); None if
     it is. The element is named (``[1][0]``), so NumPy's "inhomogeneous shape" never reaches the user."""
     if not isinstance(value, list) or len(value) != shape[0]:
-        what = (f"a list of {shape[0]} numbers" if len(shape) == 1
+        what = (f"a list of {shape[0]} number{'s' if shape[0] != 1 else ''}" if len(shape) == 1
                 else f"a {shape[0]}x{shape[1]} array (rows of numbers)")
         return f"{at + ' ' if at else ''}must be {what}, got {json_shown(value)}"
     for i, v in enumerate(value):
@@ -441,11 +441,20 @@ def _array_problem(value: object, shape: tuple[int, ...], at: str = "") -> str |
 
 def _check_entry_types(entry: dict, where: str, path: Path, dim: int) -> None:
     """JSON types of one ``residuals`` entry: ``mean`` a list of ``dim`` finite numbers (optional), ``cov`` a
-    ``dim x dim`` array of them (numbers, not booleans), a non-negative integer count."""
+    ``dim x dim`` array of them (numbers, not booleans; for ``dim`` 1 also a bare number or a one-element list),
+    a non-negative integer count."""
     for key, shape in (("mean", (dim,)), ("cov", (dim, dim))):
         if key == "mean" and key not in entry:
             continue
-        why = _array_problem(entry[key], shape)
+        value = entry[key]
+        if dim == 1:  # a 1-D residual's scalar forms, as the loader reads them: 0.25, [0.25] or [[0.25]]
+            flat = value
+            while isinstance(flat, list) and len(flat) == 1 and isinstance(flat[0], list):
+                flat = flat[0]
+            if not isinstance(flat, list):
+                flat = [flat]
+            value = flat if key == "mean" else [flat]
+        why = _array_problem(value, shape)
         if why is not None:
             raise InputError(f"{where}: {key!r}: {why}", file=path)
     count = entry.get("count", 0)

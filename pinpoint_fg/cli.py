@@ -415,6 +415,11 @@ def _add_batch_parser(sub: argparse._SubParsersAction) -> None:
     s.set_defaults(func=_cmd_batch)
 
 
+#: ``noise.CONIC_DISTANCES``, spelled out: importing ``pinpoint_fg.noise`` here would cost every command's start
+#: (and ``--help``) ~0.8 s of NumPy and factors; ``tests/test_cli.py`` pins the two equal.
+_CONIC_DISTANCES = ("sampson", "geometric")
+
+
 def _add_robust_option(s: argparse.ArgumentParser) -> None:
     """``--robust`` (track and batch)."""
     s.add_argument("--robust", type=_robust_spec, default=None, metavar="SPEC",
@@ -428,7 +433,7 @@ def _add_conic_model_options(s: argparse.ArgumentParser) -> None:
     s.add_argument("--conic-correlation-px", type=_correlation_px, default=None, metavar="PX",
                    help="correlation length of the backbone residuals along the arc (0: independent pixels); "
                         "default: the noise file's, else 0")
-    s.add_argument("--conic-distance", choices=("sampson", "geometric"), default=None,
+    s.add_argument("--conic-distance", choices=_CONIC_DISTANCES, default=None,
                    help="backbone pixel to the image conic: first-order Sampson distance (the paper's) or the exact "
                         "geometric distance (better for a needle seen nearly edge-on); default: the noise file's, "
                         "else sampson")
@@ -497,8 +502,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--conic-correlation", action="store_true",
                    help="also fit the backbone residuals' correlation length along the arc (default: independent "
                         "pixels, the paper's model)")
-    s.add_argument("--conic-distance", choices=("sampson", "geometric"), default="sampson",
-                   help="the backbone residual to calibrate: the one you track with (default: sampson)")
+    s.add_argument("--conic-distance", choices=_CONIC_DISTANCES, default="sampson",
+                   help="the backbone residual to calibrate: the one you track with (default: sampson); recorded in "
+                        "the noise file, whose distance `track --noise` then uses and enforces")
     s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.set_defaults(func=_cmd_calibrate)
 

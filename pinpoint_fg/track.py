@@ -229,6 +229,8 @@ def track_recording(
         NoiseConfig(conic_correlation_px=conic_correlation_px)  # refused here (ValueError), before any output
     if conic_distance is not None and conic_distance not in CONIC_DISTANCES:
         raise ValueError(f"conic_distance must be one of {', '.join(CONIC_DISTANCES)}, got {conic_distance!r}")
+    if noise_file is not None:  # a bad file, or one of another backbone distance, before any output or reading
+        resolve_conic_distance(conic_distance, NoiseConfig.load(noise_file), noise_file)
     if robust is not None and not isinstance(robust, Mapping):
         raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
                          f"SPEC), got {type(robust).__name__}")  # a str was "dictionary update sequence element #0"

@@ -90,7 +90,7 @@ def test_evaluate_and_ablate(runs: dict[str, Path], tmp_path: Path, capsys: pyte
     assert "partial:" not in printed  # both results cover the whole run
     assert "no modes.csv" not in printed  # every tracker writes its modes
     assert "; no reference\n" in printed
-    assert "(no reference: no mht result of that recording among the inputs and no --reference)" in printed
+    assert "(no reference: neither an mht result of that recording among the inputs nor a --reference of it)" in printed
     assert "(0 / 0 frames)" not in printed  # rates against no reference are not printed as if measured
     assert (rep / "summary.csv").exists() and (rep / "tables.md").exists()
     assert list(rep.glob("*.png"))
@@ -270,3 +270,13 @@ def test_keypoints_outside_the_image_are_ignored_with_a_note(runs: dict[str, Pat
         rows = list(csv.DictReader((out / "estimates.csv").open()))
         poses[run.name] = [[r[k] for k in ("x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")] for r in rows]
     assert poses["far"] == poses["empty"]
+
+
+def test_the_command_lines_backbone_distances_are_the_libraries() -> None:
+    from pinpoint_fg import cli
+    from pinpoint_fg.noise import CONIC_DISTANCES
+
+    assert cli._CONIC_DISTANCES == CONIC_DISTANCES
+    for command in ("track", "batch", "calibrate"):
+        with pytest.raises(SystemExit):
+            main([command, "--conic-distance", "euclid", "x", "--out", "y"])

@@ -1515,3 +1515,20 @@ def test_a_run_without_any_image_evidence_is_tracked_with_a_note(run: Path, tmp_
     assert "none of the 8 frames" in capsys.readouterr().err
     assert main(["validate", str(run)]) == 0
     assert "none of the" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "starts"), [
+    (["track", "RUN", "--particles", "0", "--out", "O"], "error: pinpoint-fg track: argument --particles: "),
+    (["track", "RUN", "--disable", "bogus", "--out", "O"], "error: pinpoint-fg track: argument --disable: "),
+    (["simulate", "--frames", "0", "--out", "O"], "error: pinpoint-fg simulate: argument --frames: "),
+    (["bogus"], "error: pinpoint-fg: argument command: invalid choice: 'bogus'"),
+    ([], "error: pinpoint-fg: the following arguments are required: command"),
+])
+def test_usage_errors_are_one_line(argv: list[str], starts: str, tmp_path: Path,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: argparse's usage block (6-8 lines) above the error."""
+    with pytest.raises(SystemExit) as exc:
+        main([str(tmp_path / a) if a in ("RUN", "O") else a for a in argv])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and err.startswith(starts) and err.rstrip().endswith(
+        "--help`)"), err

@@ -198,6 +198,11 @@ def test_the_accuracy_floor_is_printed_once_per_likelihood_not_per_method(setup,
     text = evaluate_results([results["svn"], svgd], out=tmp_path / "e", figures=False).text
     floor = [ln for ln in text.splitlines() if ln.startswith("accuracy floor")]
     assert len(floor) == 1 and floor[0].count(" mm / ") == 1, floor  # svgd's model is svn's full one
+    # another likelihood (the dense term off) has its own floor, named as SVN's variant of it, whatever the method
+    off = _write_result(tmp_path / "svgd-nodense", rec, "svgd", "bimodal", disabled=("dense",))
+    text = evaluate_results([results["svn"], svgd, off], out=tmp_path / "e2", figures=False).text
+    floor = next(ln for ln in text.splitlines() if ln.startswith("accuracy floor"))
+    assert floor.count(" mm / ") == 2 and f"{rec.info.name} {variant_name('svn', ('dense',))}: " in floor, floor
 
 
 def test_recording_given_explicitly_or_missing(setup, tmp_path: Path) -> None:  # noqa: ANN001

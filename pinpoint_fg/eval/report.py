@@ -610,8 +610,8 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
     lines = [line(header), "-" * len(line(header)), *(line(x) for x in rows)]
     floors = {}
     for ev in evals:
-        # the floor depends on the likelihood (its switches), not on the method: svgd shares the full model's
-        key = (ev.row["recording"], ev.variant if ev.method == "svn" else "full")
+        # the floor depends on the likelihood (its switches), not on the method: named as SVN's variant of them
+        key = (ev.row["recording"], variant_name("svn", _disabled_of(ev.result)))
         if np.isfinite(ev.row["floor_trans_mm"]):
             floors.setdefault(key, (ev.row["floor_trans_mm"], ev.row["floor_rot_deg"]))
     if floors:
@@ -634,7 +634,8 @@ def comparison_text(evals: Sequence[ResultEvaluation]) -> str:
                 f"({r['ref_multimodal_frames']} / {r['ref_single_frames']} frames)" if r.get("reference") else
                 "no reference")))
         if not all(ev.row.get("reference") for ev in evals):
-            lines.append("  (no reference: no mht result of that recording among the inputs and no --reference)")
+            lines.append("  (no reference: neither an mht result of that recording among the inputs nor a --reference "
+                         "of it)")
     smoothed = [ev for ev in evals if ev.row["smoothed_frames"] > 0]
     if smoothed:
         lines += ["", "fixed-lag smoothed poses (smoothed.csv) vs the filtered estimates of the same frames:"]

@@ -141,9 +141,10 @@ def run_batch(
 ) -> BatchOutcome:
     """Track every run on Dask (module docstring); returns each run's outcome, failures included.
 
-    ``track_options`` are :func:`track_recording`'s (``particles``, ``window``, ``noise_file``,
-    ``disable``, ``seed``, ``max_frames``, ``max_points``, ``spread_scale``). ``on_done(run, out, error)`` is called as
-    each run finishes (``error`` None on success).
+    ``track_options`` are :func:`track_recording`'s (:data:`TRACK_OPTIONS`: ``particles``, ``window``, ``noise_file``,
+    ``disable``, ``seed``, ``max_frames``, ``max_points``, ``robust``, ``spread_scale``, ``conic_correlation_px``,
+    ``conic_distance``, ...). ``on_done(run, out, error)`` is called as each run finishes (``error`` None on success).
+    An ``out_dir`` this call created is removed again while it is still empty when the batch fails.
     """
     from distributed import Client, LocalCluster, as_completed
 
@@ -190,6 +191,7 @@ def run_batch(
         if cluster is not None:
             cluster.close()
     if bug is not None:
+        remove_empty_dirs(created)
         raise bug
     results = {p: out_dirs[p] for p in paths if done[p][0] == "ok"}
     failures = {p: done[p][1] for p in paths if done[p][0] != "ok"}

@@ -161,8 +161,28 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         config = replace(geometry_config(args.geometry), mask_spur_prob=args.mask_spurs)
     out = simulate(args.scenario, n_frames=args.frames, seed=args.seed, out=args.out, images=args.images,
                    config=config)
+    if args.overwrite:
+        note = _unnamed_pngs_note(Path(out))
+        if note is not None:
+            print(note, file=sys.stderr)
     print(f"wrote {out}")
     return 0
+
+
+def _unnamed_pngs_note(run: Path) -> str | None:
+    """A ``note:`` line when ``run``'s masks/ or images/ hold PNGs that no row of its frames.csv names: files of a
+    longer run written there before, which ``--overwrite`` leaves in place as it leaves every file it does not
+    write (said, not deleted)."""
+    import csv
+
+    with open(run / "frames.csv", newline="", encoding="utf-8") as fh:
+        named = {cell for row in csv.DictReader(fh) for key in ("mask", "image") if (cell := row.get(key))}
+    stale = sorted(str(p.relative_to(run)) for d in ("masks", "images") if (run / d).is_dir()
+                   for p in (run / d).glob("*.png") if str(p.relative_to(run)) not in named)
+    if not stale:
+        return None
+    return (f"note: {run} holds {len(stale)} PNG file(s) of an earlier run that no row of frames.csv names "
+            f"(e.g. {stale[0]}); left in place")
 
 
 def _cmd_groundtruth(args: argparse.Namespace) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -280,3 +281,22 @@ def test_the_command_lines_backbone_distances_are_the_libraries() -> None:
     for command in ("track", "batch", "calibrate"):
         with pytest.raises(SystemExit):
             main([command, "--conic-distance", "euclid", "x", "--out", "y"])
+
+
+def test_simulate_overwrite_names_the_earlier_runs_leftover_pngs(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """--overwrite replaces what simulate writes and leaves other files, as everywhere; masks of a longer earlier
+    run that no row names are said, not silently left (nor deleted)."""
+    out = tmp_path / "run"
+    assert main(["simulate", "--frames", "12", "--seed", "2", "--out", str(out)]) == 0
+    before = sorted(p.name for p in (out / "masks").glob("*.png"))
+    assert "note:" not in capsys.readouterr().err
+    assert main(["simulate", "--frames", "12", "--seed", "2", "--out", str(out), "--overwrite"]) == 0
+    assert "note:" not in capsys.readouterr().err  # the same run again: every PNG is named
+    assert main(["simulate", "--frames", "4", "--seed", "2", "--out", str(out), "--overwrite"]) == 0
+    err = capsys.readouterr().err
+    with open(out / "frames.csv", newline="") as fh:
+        named = {row["mask"] for row in csv.DictReader(fh) if row["mask"]}
+    stale = len(before) - len(named)
+    assert stale > 0 and sorted(p.name for p in (out / "masks").glob("*.png")) == before  # nothing deleted
+    assert err.count("note:") == 1 and f"holds {stale} PNG file(s) of an earlier run" in err, err

@@ -95,11 +95,12 @@ def make_tracker(method: str, config: TrackerConfig) -> Tracker:
 
 def tracker_config(recording: Recording, method: str, particles: int | None = None, window: int = 1,
                    noise: NoiseConfig | None = None, disable: tuple[str, ...] | list[str] = (),
-                   seed: int = 0, conic_distance: str = "sampson") -> TrackerConfig:
+                   seed: int = 0, conic_distance: str | None = None) -> TrackerConfig:
     """A TrackerConfig for a recording (camera, needle) with the method's default particle count.
 
-    ``conic_distance``: the backbone residual, "sampson" (default) or "geometric"
-    (:attr:`~pinpoint_fg.likelihood.MeasurementModel.conic_distance`)."""
+    ``conic_distance``: the backbone residual, "sampson" or "geometric"
+    (:attr:`~pinpoint_fg.likelihood.MeasurementModel.conic_distance`); None: the one ``noise`` was calibrated for,
+    else "sampson"; another one than ``noise``'s is refused (:func:`resolve_conic_distance`, as ``track``)."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     n = DEFAULT_PARTICLES[method] if particles is None else _whole("particles", particles, 1)
@@ -108,7 +109,7 @@ def tracker_config(recording: Recording, method: str, particles: int | None = No
     return TrackerConfig(
         camera=recording.info.camera, needle=recording.info.needle, noise=noise or NoiseConfig(),
         switches=Switches.from_disabled(_disabled(disable)), particles=n, window=window, seed=seed,
-        conic_distance=conic_distance,
+        conic_distance=resolve_conic_distance(conic_distance, noise, None),
     )
 
 

@@ -267,3 +267,21 @@ def test_track_notes_the_switches_the_recording_suggests_and_applies_only_its_ow
     (run / "recording.json").write_text(json.dumps(info))
     assert main(["track", str(run), "--method", "map", "--out", str(tmp_path / "d")]) == 0
     assert "suggested_disable" not in capsys.readouterr().err
+
+
+def test_tracker_config_takes_the_noise_files_backbone_distance_as_track_does(run: Path) -> None:
+    """The Python API (a user's own pipeline) resolves the distance as ``track`` does: the noise's when not given,
+    and another one refused (before, ``tracker_config`` took "sampson" whatever the noise was calibrated for)."""
+    from pinpoint_fg.errors import InputError
+    from pinpoint_fg.io.recording import read_recording
+    from pinpoint_fg.noise import NoiseConfig
+    from pinpoint_fg.track import tracker_config
+
+    rec = read_recording(run)
+    geometric = NoiseConfig().with_conic_distance("geometric")
+    assert tracker_config(rec, "map", noise=geometric).conic_distance == "geometric"
+    assert tracker_config(rec, "map", noise=geometric, conic_distance="geometric").conic_distance == "geometric"
+    assert tracker_config(rec, "map").conic_distance == "sampson"
+    assert tracker_config(rec, "map", noise=NoiseConfig(), conic_distance="geometric").conic_distance == "geometric"
+    with pytest.raises(InputError, match="calibrated for the geometric backbone distance, not sampson"):
+        tracker_config(rec, "map", noise=geometric, conic_distance="sampson")

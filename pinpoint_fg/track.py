@@ -230,8 +230,10 @@ def track_recording(
         NoiseConfig(conic_correlation_px=conic_correlation_px)  # refused here (ValueError), before any output
     if conic_distance is not None and conic_distance not in CONIC_DISTANCES:
         raise ValueError(f"conic_distance must be one of {', '.join(CONIC_DISTANCES)}, got {conic_distance!r}")
-    if noise_file is not None:  # a bad file, or one of another backbone distance, before any output or reading
-        resolve_conic_distance(conic_distance, NoiseConfig.load(noise_file), noise_file)
+    # read once, here: a bad file, or one of another backbone distance, is refused before any output or reading
+    noise = NoiseConfig.load(noise_file) if noise_file is not None else None
+    if noise is not None:
+        resolve_conic_distance(conic_distance, noise, noise_file)
     if robust is not None and not isinstance(robust, Mapping):
         raise ValueError(f"robust must be a dict {{residual name: RobustLoss}} (parse_robust_spec parses a --robust "
                          f"SPEC), got {type(robust).__name__}")  # a str was "dictionary update sequence element #0"
@@ -247,8 +249,8 @@ def track_recording(
         offload = Offload(verdict_workers, max_points)  # first: the observer starts up while we read
         failed = True
         try:
-            out = _track(run, method, out, particles, window, noise_file, disable, seed, progress, max_frames,
-                         robust, blas_threads, offload, scale, conic_correlation_px, conic_distance)
+            out = _track(run, method, out, particles, window, noise_file, noise, disable, seed, progress,
+                         max_frames, robust, blas_threads, offload, scale, conic_correlation_px, conic_distance)
             failed = False
         finally:
             offload.close(failed)
@@ -287,23 +289,22 @@ def _first_line(exc: Exception) -> str:
 
 
 def _track(run: str | Path, method: str, out: Path, particles: int | None, window: int,
-           noise_file: str | Path | None, disable: tuple[str, ...] | list[str], seed: int, progress: bool | None,
-           max_frames: int | None, robust: dict[str, RobustLoss] | None, blas_threads: int | None,
-           offload: Offload, scale: dict | None = None, conic_correlation_px: float | None = None,
-           conic_distance: str | None = None) -> Path:
+           noise_file: str | Path | None, noise: NoiseConfig | None, disable: tuple[str, ...] | list[str], seed: int,
+           progress: bool | None, max_frames: int | None, robust: dict[str, RobustLoss] | None,
+           blas_threads: int | None, offload: Offload, scale: dict | None = None,
+           conic_correlation_px: float | None = None, conic_distance: str | None = None) -> Path:
     """:func:`track_recording` once ``out`` is prepared and ``offload``'s observer started.
 
+    ``noise``: the noise file ``noise_file`` as read and checked by :func:`track_recording` (None without one).
     ``scale``: :func:`~pinpoint_fg.io.spread_scale.settings_entry` of the spread scale, or None.
     """
     # every mask is decoded through decode_image, whose check inflates it first (in the observer, beside the
     # tracker): inflating all of them here too made reading ~0.3 s of a 100-frame run's 3 s (1080 x 1080 masks)
     recording = read_recording(run, inflate=False)
-    noise = NoiseConfig.load(noise_file) if noise_file is not None else None
     if robust is not None:
         noise = (noise or NoiseConfig()).with_robust(robust)
     if conic_correlation_px is not None:
         noise = (noise or NoiseConfig()).with_conic_correlation(conic_correlation_px)
-    conic_distance = resolve_conic_distance(conic_distance, noise, noise_file)
     config = tracker_config(recording, method, particles, window, noise, disable, seed, conic_distance)
     tracker = make_tracker(method, config)
     frames = recording.frames if max_frames is None else recording.frames[: int(max_frames)]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import random
 import tracemalloc
@@ -14,25 +15,21 @@ from pinpoint_fg.io.jsonfile import MAX_JSON_DEPTH, json_depth, load_json
 
 
 def _reference_depth(text: str) -> int:
-    """JSON's string rules character by character (the textbook state machine the scan must equal)."""
-    depth = deepest = 0
+    """JSON's string rules character by character (the textbook reading the scan must equal): the characters outside
+    strings, then the running sum of their bracket steps."""
+    outside = []
     in_string = escape = False
     for c in text:
-        if in_string:
-            if escape:
-                escape = False
-            elif c == "\\":
-                escape = True
-            elif c == '"':
-                in_string = False
+        if escape:
+            escape = False
+        elif in_string:
+            escape, in_string = c == "\\", c != '"'
         elif c == '"':
             in_string = True
-        elif c in "[{":
-            depth += 1
-            deepest = max(deepest, depth)
-        elif c in "]}":
-            depth -= 1
-    return deepest
+        else:
+            outside.append(c)
+    steps = [{"[": 1, "{": 1, "]": -1, "}": -1}.get(c, 0) for c in outside]
+    return max(itertools.accumulate(steps, initial=0))
 
 
 def _nested(rng: random.Random, level: int) -> object:

@@ -1,12 +1,14 @@
 """SVN vs single-mode MAP vs MHT on every run of a directory: mean errors, truth kept, modes verdict (issue 9).
 
 Usage: ``.venv/bin/python scripts/compare_svn_map_mht.py RUNS_DIR [--methods svn map mht] [--runs GLOB ...]
-[--robust SPEC]``
+[--robust SPEC] [--noise FILE] [--disable SWITCH ...]``
 (e.g. the runs of ``pinpoint-fg simulate`` for each scenario with another ``--seed`` than the benchmark's;
 ``--runs 'snapshots-0[1-8]'`` keeps the runs whose names match a glob; ``--methods svn`` scores one method (``pf``
 and ``svgd`` are accepted too), e.g. to compare two trees by running this from each with ``PYTHONPATH`` set to it;
 ``--robust`` sets the robust losses as ``track --robust`` does, e.g. ``conic=cauchy:3,grasp-perpendicular=huber:1.345``,
-the default before the twenty-third round, against today's). Each run is tracked as ``track`` would with the recording's
+the default before the twenty-third round, against today's; ``--noise`` tracks with a noise file, as ``track --noise``
+does, the ``--robust`` given then replacing the file's; ``--disable`` adds switches to each run's suggested ones).
+Each run is tracked as ``track`` would with the recording's
 ``suggested_disable`` given as ``--disable`` (seed 0), one method after the other, in this process; "kept" = some
 particle within 2 mm / 10 deg of the truth, "bimodal" = the modes verdict (second mode >= 0.1). Last, per scenario (a
 run's name without its ``-SEED`` suffix, as ``pinpoint-fg simulate`` names runs) and method, the means of those columns
@@ -29,8 +31,11 @@ METHODS = ("svn", "map", "mht")
 
 
 def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ...] = ("*",),
-         robust: dict[str, RobustLoss] | None = None) -> None:
-    noise = None if robust is None else NoiseConfig().with_robust(robust)
+         robust: dict[str, RobustLoss] | None = None, noise_file: Path | None = None,
+         disable: tuple[str, ...] = ()) -> None:
+    noise = NoiseConfig.load(noise_file) if noise_file is not None else None
+    if robust is not None:
+        noise = (noise or NoiseConfig()).with_robust(robust)
     header = f"{'method':<6} {'trans mm':>8} {'rot deg':>8} {'kept':>6} {'bimodal':>8}"
     print(f"{'run':<16} {header}")
     scores: dict[str, dict[str, list]] = {}
@@ -39,7 +44,8 @@ def main(root: Path, methods: tuple[str, ...] = METHODS, patterns: tuple[str, ..
         rec = read_recording(run)
         scenario = run.name.rsplit("-", 1)[0] if run.name.rsplit("-", 1)[-1].isdigit() else run.name
         for method in methods:
-            config = tracker_config(rec, method, noise=noise, disable=suggested_disable(rec), seed=0)
+            switches = tuple(dict.fromkeys((*suggested_disable(rec), *disable)))
+            config = tracker_config(rec, method, noise=noise, disable=switches, seed=0)
             sc = score_run(rec, make_tracker(method, config))
             scores.setdefault(scenario, {}).setdefault(method, []).append(sc)
             print(f"{run.name:<16} {method:<6} {sc.trans_mm:8.2f} {sc.rot_deg:8.1f} {sc.kept:6.1%} {sc.bimodal:8.1%}",
@@ -59,5 +65,7 @@ if __name__ == "__main__":
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=(*METHODS, "pf", "svgd"))
     ap.add_argument("--runs", nargs="+", default=["*"], help="globs of run names to keep")
     ap.add_argument("--robust", type=parse_robust_spec, default=None, help="robust losses, as track --robust")
+    ap.add_argument("--noise", type=Path, default=None, help="a noise file, as track --noise")
+    ap.add_argument("--disable", nargs="+", default=[], help="switches added to each run's suggested ones")
     args = ap.parse_args()
-    main(args.root, tuple(args.methods), tuple(args.runs), args.robust)
+    main(args.root, tuple(args.methods), tuple(args.runs), args.robust, args.noise, tuple(args.disable))

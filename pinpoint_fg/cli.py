@@ -362,7 +362,7 @@ def _cmd_export_bag(args: argparse.Namespace) -> int:
         raise InputError("--storage is a ROS 2 option (sqlite3 or mcap); a ROS 1 bag has one format",
                          column="--storage")
     out = export_bag(args.run, args.out, fmt=args.format, storage=args.storage or "sqlite3",
-                     topics=_bag_topics(args))
+                     topics=_bag_topics(args), overwrite=args.overwrite)
     print(f"wrote {out}")
     return 0
 
@@ -385,10 +385,13 @@ def _add_bag_parsers(sub: argparse._SubParsersAction) -> None:
 
     s = sub.add_parser("export-bag", help="write a recorded run as a ROS 2 (default) or ROS 1 bag")
     s.add_argument("run", type=Path)
-    s.add_argument("--out", type=Path, required=True, help="ROS 2: a new directory; ROS 1: a new FILE.bag")
+    s.add_argument("--out", type=Path, required=True, help="ROS 2: a new (or empty) directory; ROS 1: a new FILE.bag")
     s.add_argument("--format", choices=("ros2", "ros1"), default="ros2")
     s.add_argument("--storage", choices=("sqlite3", "mcap"), default=None,
                    help="ROS 2 storage plugin (default sqlite3; refused with --format ros1)")
+    s.add_argument("--overwrite", action="store_true",
+                   help="replace an existing bag at --out, whole, once the new one is written (only a bag: a "
+                        "directory holding other files is refused)")
     _add_bag_topic_options(s)
     s.set_defaults(func=_cmd_export_bag)
 

@@ -64,7 +64,7 @@ import numpy as np
 from factors.geometry import PinholeCamera
 from pinpoint_fg.conic_fit import conic_misfit_px
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.recording.reader import no_image_evidence_note, time_order_note
+from pinpoint_fg.io.recording.reader import no_image_evidence_note, time_order_note, unknown_columns_note
 from pinpoint_fg.observation import Observation
 
 if TYPE_CHECKING:
@@ -472,10 +472,10 @@ def outside_image_note(recording: Recording, frames: list[FrameRecord] | None = 
 
 def recording_notes(recording: Recording, frames: list[FrameRecord] | None = None) -> list[str]:
     """The ``note:`` lines a valid run (or its ``frames``) still deserves, for ``validate`` and ``track``: keypoints
-    outside the image (:func:`outside_image_note`), ``t_s`` out of order and no image evidence at all
-    (:mod:`pinpoint_fg.io.recording.reader`)."""
-    notes = (outside_image_note(recording, frames), time_order_note(recording, frames),
-             no_image_evidence_note(recording, frames))
+    outside the image (:func:`outside_image_note`), ``t_s`` out of order, no image evidence at all and unknown
+    columns that look like a misspelt known one (:mod:`pinpoint_fg.io.recording.reader`)."""
+    notes = (unknown_columns_note(recording), outside_image_note(recording, frames),
+             time_order_note(recording, frames), no_image_evidence_note(recording, frames))
     return [n for n in notes if n is not None]
 
 

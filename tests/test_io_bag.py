@@ -274,9 +274,8 @@ def test_export_refuses_what_a_bag_cannot_hold(sim_run: Path, tmp_path: Path) ->
         export_bag(sim_run, tmp_path / "x", fmt="ros1")
     with pytest.raises(InputError, match="must not end in .bag"):
         export_bag(sim_run, tmp_path / "x.bag", fmt="ros2")
-    (tmp_path / "exists").mkdir()
-    with pytest.raises(InputError, match="exists already"):
-        export_bag(sim_run, tmp_path / "exists")
+    (tmp_path / "exists").mkdir()  # an empty directory is written into, as a new one (as every --out)
+    assert (export_bag(sim_run, tmp_path / "exists") / "metadata.yaml").is_file()
 
 
 def test_cli_export_import_and_bad_bag(sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -296,3 +295,106 @@ def test_cli_export_import_and_bad_bag(sim_run: Path, tmp_path: Path, capsys: py
                  str(sim_run / "recording.json")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "junk.bag" in err and "Traceback" not in err
+
+
+# --- export-bag over an existing --out ----------------------------------------------------------
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    """Every file under ``root`` (or ``root`` itself) with its bytes, and the hidden siblings' names."""
+    files = {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()} if root.is_dir() \
+        else {".": root.read_bytes()}
+    return {**files, "siblings": repr(sorted(p.name for p in root.parent.iterdir() if p.name.startswith(".")))}
+
+
+def _topics(bag: Path) -> set[str]:
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        return {c.topic for c in reader.connections}
+
+
+@pytest.mark.parametrize(("fmt", "name"), [("ros2", "b2"), ("ros1", "b1.bag")])
+def test_export_refuses_an_existing_bag_without_overwrite(sim_run: Path, tmp_path: Path, fmt: str, name: str) -> None:
+    bag = export_bag(sim_run, tmp_path / name, fmt=fmt)
+    before = _tree(bag)
+    with pytest.raises(InputError, match="pass --overwrite to replace it") as ei:
+        export_bag(sim_run, bag, fmt=fmt, topics=BagTopics(gt=None))
+    assert str(bag) in str(ei.value) and "\n" not in str(ei.value)
+    assert _tree(bag) == before
+
+
+def test_export_overwrite_replaces_a_ros2_bag_whole(sim_run: Path, tmp_path: Path) -> None:
+    """The old bag's storage file goes with it (sqlite3 -> mcap: no .db3 left beside the .mcap), and no staging
+    directory is left beside it."""
+    bag = export_bag(sim_run, tmp_path / "b2")
+    assert "/needle/gt_pose" in _topics(bag)
+    assert export_bag(sim_run, bag, storage="mcap", topics=BagTopics(gt=None), overwrite=True) == bag
+    assert sorted(p.name for p in bag.iterdir()) == ["b2.mcap", "metadata.yaml"]
+    assert "/needle/gt_pose" not in _topics(bag) and "/needle/tip_px" in _topics(bag)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b2"]
+
+
+def test_export_overwrite_replaces_a_ros1_bag(sim_run: Path, tmp_path: Path) -> None:
+    bag = export_bag(sim_run, tmp_path / "b1.bag", fmt="ros1")
+    assert export_bag(sim_run, bag, fmt="ros1", topics=BagTopics(gt=None), overwrite=True) == bag
+    assert "/needle/gt_pose" not in _topics(bag) and "/needle/tip_px" in _topics(bag)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b1.bag"]
+
+
+def test_export_overwrite_refuses_what_is_not_a_bag(sim_run: Path, tmp_path: Path) -> None:
+    """--overwrite replaces a bag, nothing else: a directory holding other files (a bag plus the user's notes, a run
+    directory), a file that is no ROS 1 bag, the other format's bag, and a symbolic link are left as they were."""
+    bag = export_bag(sim_run, tmp_path / "b2")
+    (bag / "notes.txt").write_text("mine")
+    other = tmp_path / "other.bag"
+    other.write_text("not a bag")
+    export_bag(sim_run, tmp_path / "r1.bag", fmt="ros1")
+    (tmp_path / "dir.bag").mkdir()
+    (tmp_path / "dir.bag" / "x").write_text("x")
+    (tmp_path / "link").symlink_to(bag)
+    cases = [(bag, "ros2", "notes.txt"), (sim_run, "ros2", "recording.json"), (other, "ros1", "not a ROS 1 bag"),
+             (tmp_path / "dir.bag", "ros1", "a directory"), (tmp_path / "link", "ros2", "symbolic link")]
+    before = {p: _tree(p) for p, _, _ in cases}
+    for path, fmt, why in cases:
+        for overwrite in (False, True):
+            with pytest.raises(InputError, match=why) as ei:
+                export_bag(sim_run, path, fmt=fmt, overwrite=overwrite)
+            assert str(path) in str(ei.value) and "\n" not in str(ei.value)
+    assert {p: _tree(p) for p, _, _ in cases} == before
+
+
+@pytest.mark.parametrize(("fmt", "name"), [("ros2", "b2"), ("ros1", "b1.bag")])
+def test_export_overwrite_keeps_the_old_bag_when_writing_fails(sim_run: Path, tmp_path: Path, fmt: str, name: str,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    bag = export_bag(sim_run, tmp_path / name, fmt=fmt)
+    before = _tree(bag)
+    calls = []
+
+    def failing_write(self, topic, msg, ns):  # a full disk half-way through the new bag
+        calls.append(topic)
+        if len(calls) == 7:
+            raise OSError(28, "No space left on device", str(self.writer.path))
+        original(self, topic, msg, ns)
+
+    original = _BagWriter.write
+    monkeypatch.setattr(_BagWriter, "write", failing_write)
+    with pytest.raises(InputError, match="No space left on device") as ei:
+        export_bag(sim_run, bag, fmt=fmt, overwrite=True)
+    assert str(bag) in str(ei.value) and ".partial" not in str(ei.value)
+    assert _tree(bag) == before
+
+
+def test_cli_export_bag_overwrite(sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from pinpoint_fg.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert "--overwrite" in sub.choices["export-bag"].format_help()
+    bag = tmp_path / "b2"
+    assert main(["export-bag", str(sim_run), "--out", str(bag)]) == 0
+    capsys.readouterr()
+    assert main(["export-bag", str(sim_run), "--out", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(bag) in err and "--overwrite" in err and "Traceback" not in err
+    assert main(["export-bag", str(sim_run), "--out", str(bag), "--overwrite", "--topic-gt", "none"]) == 0
+    assert "/needle/gt_pose" not in _topics(bag)

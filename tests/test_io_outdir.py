@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import pytest
 
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
-from pinpoint_fg.io.outdir import prepare_output_dir, prepare_output_file
+from pinpoint_fg.io.outdir import prepare_output_dir, prepare_output_file, staged_replacement
 
 
 def test_new_and_empty_directories_are_accepted(tmp_path: Path) -> None:
@@ -158,3 +159,37 @@ def test_cli_refuses_an_out_inside_the_input_recording(command: list[str], sub: 
     line = _one_error_line(capsys)
     assert "--out is inside the input" in line and str(run / sub) in line
     assert sorted(str(p.relative_to(run)) for p in run.rglob("*")) == before
+
+
+def test_staged_replacement_swaps_a_directory_whole_or_not_at_all(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """The new output replaces the old whole once written; when writing, or moving it into place, fails, the old
+    output is where it was; no hidden sibling is left either way."""
+    out = tmp_path / "bag"
+    out.mkdir()
+    (out / "old.db3").write_text("old")
+    with pytest.raises(RuntimeError), staged_replacement(out, "bag") as new:
+        new.mkdir()
+        (new / "new.db3").write_text("half")
+        raise RuntimeError("disk full")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "old.db3"]
+    real_rename = os.rename
+    calls = []
+
+    def rename(src, dst):  # the second move (the new output into place) fails
+        calls.append(dst)
+        if len(calls) == 2:
+            raise OSError(13, "Permission denied", str(src))
+        real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename)
+    with pytest.raises(OSError) as ei, staged_replacement(out, "bag") as new:
+        new.mkdir()
+        (new / "new.db3").write_text("new")
+    assert ei.value.filename == str(out) and len(calls) == 3  # named as the user knows it; moved back
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "old.db3"]
+    monkeypatch.setattr(os, "rename", real_rename)
+    with staged_replacement(out, "bag") as new:
+        new.mkdir()
+        (new / "new.db3").write_text("new")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "new.db3"]

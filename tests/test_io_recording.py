@@ -16,7 +16,12 @@ from factors.lie import se3_exp
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
 from pinpoint_fg.io.recording.png import png_size
-from pinpoint_fg.io.recording.reader import read_recording, summarize_recording
+from pinpoint_fg.io.recording.reader import (
+    near_miss_columns,
+    read_recording,
+    summarize_recording,
+    unknown_columns_note,
+)
 from pinpoint_fg.io.recording.schema import KNOWN_COLUMNS, QUAT_NORM_TOL, FrameRecord, Recording, RecordingInfo
 from pinpoint_fg.io.recording.validator import validate_run
 from pinpoint_fg.io.recording.writer import RecordingWriter, replace_ground_truth, write_recording
@@ -578,3 +583,85 @@ def test_cli_validate_bad_run(run, capsys) -> None:
 
 def test_known_columns_cover_the_format() -> None:
     assert KNOWN_COLUMNS[:2] == ("frame", "t_s") and len(KNOWN_COLUMNS) == len(set(KNOWN_COLUMNS)) == 23
+
+
+# ---------------------------------------------------------------------------------------------
+# unknown columns that look like a known one (extra columns stay allowed)
+# ---------------------------------------------------------------------------------------------
+
+
+def rename_columns(root: Path, renames: dict[str, str], add: dict[str, str] | None = None,
+                   drop: tuple[str, ...] = ()) -> None:
+    """Rename header columns of frames.csv, drop some (with their cells), append ``add`` (column: cell)."""
+    def edit(header, rows):
+        for name in drop:
+            i = header.index(name)
+            del header[i]
+            for r in rows:
+                del r[i]
+        for old, new in renames.items():
+            header[header.index(old)] = new
+        for name, value in (add or {}).items():
+            header.append(name)
+            for r in rows:
+                r.append(value)
+
+    rewrite_csv(root, edit)
+
+
+def test_renamed_mask_column_is_named_on_a_note(run) -> None:
+    """A run whose ``mask`` column was written as ``mask_path`` was valid and tracked without masks, silently."""
+    root = run[0]
+    rename_columns(root, {"mask": "mask_path"})
+    rec = read_recording(root)
+    assert all(f.mask is None for f in rec.frames)  # still ignored: the format allows extra columns
+    note = unknown_columns_note(rec)
+    assert note == (f"note: {root / 'frames.csv'}: column 'mask_path' is not in the format and is ignored "
+                    "(did you mean 'mask'?)")
+
+
+def test_case_mismatch_and_missing_unit_suffix_are_named_on_one_note(run) -> None:
+    root = run[0]
+    rename_columns(root, {"tip_u_px": "Tip_U_px", "tip_v_px": "TIP_V_PX", "gt_qw": "gt_wq"},
+                   drop=("gt_x_m", "gt_y_m", "gt_z_m", "gt_qx", "gt_qy", "gt_qz"))
+    rename_columns(root, {"tail_u_px": "tail_u", "tail_v_px": "tail_v"})
+    rec = read_recording(root)
+    assert all(f.tip_px is None and f.tail_px is None for f in rec.frames)
+    note = unknown_columns_note(rec)
+    assert note is not None and note.count("\n") == 0 and note.startswith(f"note: {root / 'frames.csv'}: ")
+    assert note.endswith(": columns 'Tip_U_px', 'TIP_V_PX', 'tail_u', 'tail_v', 'gt_wq' are not in the format and "
+                         "are ignored (did you mean 'tip_u_px', 'tip_v_px', 'tail_u_px', 'tail_v_px', 'gt_qw'?)")
+
+
+def test_unrelated_extra_columns_get_no_note(run) -> None:
+    """Forward-compatible extras are not near misses, even where a known column is absent (no image, no mask)."""
+    root = run[0]
+    rename_columns(root, {}, drop=("image", "mask"),
+                   add={"surgeon_comment": "ok", "image_exposure_ms": "3.5", "detector_score": "0.9",
+                        "masked_ratio": "0.1", "notes": ""})
+    assert unknown_columns_note(read_recording(root)) is None
+
+
+def test_no_note_when_the_known_column_is_there_too(run) -> None:
+    root = run[0]
+    rename_columns(root, {}, add={"mask_path": "x", "Tip_U_px": "1", "occlusions": "none"})
+    assert unknown_columns_note(read_recording(root)) is None
+
+
+def test_near_miss_columns_rules() -> None:
+    """Case and separators, a unit or path suffix too many or too few, a typo; the known column must be absent."""
+    header = ("frame", "t_s", "MASK", "image_file", "tip_u", "Tip-V-px", "grasper_qww", "gt_wq", "surgeon_comment")
+    assert near_miss_columns(header) == {"MASK": "mask", "image_file": "image", "tip_u": "tip_u_px",
+                                         "Tip-V-px": "tip_v_px", "grasper_qww": "grasper_qw", "gt_wq": "gt_qw"}
+    # a variant of a column the header has is no near miss of another, absent one (tip_v_px)
+    assert near_miss_columns(("frame", "t_s", "tip_u_px", "Tip_U_px", "tip_u_pxx")) == {}
+
+
+def test_cli_validate_prints_the_renamed_column_note(run, capsys) -> None:
+    root = run[0]
+    rename_columns(root, {"mask": "mask_path"})
+    assert main(["validate", str(root)]) == 0
+    err = capsys.readouterr().err
+    notes = [line for line in err.splitlines() if "is not in the format" in line]
+    assert notes == [f"note: {root / 'frames.csv'}: column 'mask_path' is not in the format and is ignored "
+                     "(did you mean 'mask'?)"]

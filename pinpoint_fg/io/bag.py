@@ -62,6 +62,14 @@ Decisions (the issue leaves them open; import and export agree on every one):
 * **Not carried** by a bag, so not exported: camera images, occlusion labels, extra
   ``recording.json`` keys other than ``ros_bag``. The run's name comes from ``name`` (default:
   the bag's file name without suffix).
+* **Export over an existing ``out``.** Refused unless ``overwrite`` (CLI ``--overwrite``), as every ``--out``; an
+  empty directory counts as new (ROS 2). ``overwrite`` replaces a bag only: for ROS 2 a directory holding
+  ``metadata.yaml`` (a rosbag2 one) and nothing but ``.db3``/``.mcap`` storage files, for ROS 1 a regular file that
+  starts with ``#ROSBAG V2.0``. Anything else (a directory holding other files, a run directory, a file that is no
+  bag) is refused with or without ``overwrite``, and so is a symbolic link (replacing the link would leave its
+  target; writing through it would replace a bag elsewhere). The new bag is written into a hidden sibling and
+  swapped in once complete (:func:`~pinpoint_fg.io.outdir.staged_replacement`): the old bag is replaced whole
+  (no ``.db3`` left beside a new ``.mcap``), and kept as it was when writing fails.
 * **Export format.** ROS 2 (rosbag2 version 9, ``sqlite3`` storage by default, ``mcap`` on request;
   CDR, ``ROS2_HUMBLE`` type store) or ROS 1 (``.bag`` version 2.0, ``ROS1_NOETIC`` type store).
   The bag's receive time of every message is its header stamp. All messages have
@@ -75,6 +83,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sqlite3
 import struct
 from collections.abc import Iterator
@@ -86,7 +95,7 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError, path_argument
-from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir
+from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir, staged_replacement
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import (
     MAX_ABS_ANGLE_RAD,
@@ -670,18 +679,79 @@ def _frame_stamps(recording: Recording, origin: int) -> Iterator[tuple[FrameReco
         yield rec, ns
 
 
+#: What a ROS 2 bag directory holds besides ``metadata.yaml``: storage files with these suffixes.
+_ROS2_STORAGE_SUFFIXES = (".db3", ".mcap")
+#: The first line of a ROS 1 bag (format 2.0, the one rosbags reads and writes).
+_ROS1_MAGIC = b"#ROSBAG V2.0\n"
+#: The top-level key of a rosbag2 ``metadata.yaml``.
+_ROS2_METADATA_KEY = b"rosbag2_bagfile_information:"
+_SHOWN_ENTRIES = 3
+
+
+def _not_a_bag(out: Path, fmt: str) -> str | None:
+    """Why the existing ``out`` is not a ``fmt`` bag that ``--overwrite`` may replace (module docstring), or None
+    (an empty directory too, for ROS 2). The text follows ``--out``."""
+    try:
+        if fmt == "ros1":
+            if out.is_dir():
+                return "is a directory, not a ROS 1 bag file"
+            if not out.is_file():
+                return "is not a regular file, so not a ROS 1 bag"
+            with open(out, "rb") as fh:
+                head = fh.read(len(_ROS1_MAGIC))
+            return None if head == _ROS1_MAGIC else "is not a ROS 1 bag (it does not start with '#ROSBAG V2.0')"
+        if not out.is_dir():
+            return "is a file, not a ROS 2 bag directory"
+        entries = sorted(os.scandir(out), key=lambda e: e.name)
+        if not entries:
+            return None
+        other = [e.name for e in entries if not e.is_file(follow_symlinks=False)
+                 or not (e.name == "metadata.yaml" or e.name.endswith(_ROS2_STORAGE_SUFFIXES))]
+        if other:
+            shown = ", ".join(other[:_SHOWN_ENTRIES]) + (", ..." if len(other) > _SHOWN_ENTRIES else "")
+            return (f"holds {len(other)} entr{'y' if len(other) == 1 else 'ies'} a ROS 2 bag does not ({shown}; a bag "
+                    "holds metadata.yaml and its .db3 or .mcap files only)")
+        meta = out / "metadata.yaml"
+        if not meta.is_file():
+            return "holds no metadata.yaml, so it is not a ROS 2 bag"
+        with open(meta, "rb") as fh:
+            head = fh.read(4096).lstrip()
+        if not head.startswith(_ROS2_METADATA_KEY):
+            return "has a metadata.yaml that is not a rosbag2 one (no 'rosbag2_bagfile_information')"
+        return None
+    except OSError as exc:
+        return f"cannot be inspected: {exc.strerror or type(exc).__name__}"
+
+
+def _check_bag_out(out: Path, fmt: str, overwrite: bool) -> None:
+    """Refuse an existing ``out`` that is not a bag, or a bag without ``overwrite`` (module docstring)."""
+    if out.is_symlink():
+        raise InputError("--out is a symbolic link; name the bag's own path (export-bag writes a bag, or with "
+                         "--overwrite replaces one, never a link)", file=out)
+    if not out.exists():
+        return
+    why = _not_a_bag(out, fmt)
+    if why is not None:
+        raise InputError(f"--out {why}; --overwrite replaces only a bag: choose another --out", file=out)
+    if not overwrite and not (out.is_dir() and not any(out.iterdir())):
+        kind = "a ROS 1 bag" if fmt == "ros1" else "a ROS 2 bag"
+        raise InputError(f"--out exists ({kind}); pass --overwrite to replace it, or choose another --out", file=out)
+
+
 def export_bag(
     run: str | Path,
     out: str | Path,
     fmt: str = "ros2",
     storage: str = "sqlite3",
     topics: BagTopics | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Write the run ``run`` as a bag at ``out``; returns ``out`` (module docstring for every rule).
 
     ``fmt`` ``ros2`` writes a rosbag2 directory (``storage`` ``sqlite3`` or ``mcap``), ``ros1`` a
     ``.bag`` file (``out`` must end in ``.bag``: readers tell the two formats apart by it). Topics
-    set to None are not written. Masks are read through :meth:`Recording.load_mask`.
+    set to None are not written. Masks are read through :meth:`Recording.load_mask`. An existing ``out`` is
+    refused unless ``overwrite`` and a bag; it is then replaced once the new bag is complete.
     """
     run, out = path_argument("run", run), path_argument("out", out)  # "" was the current directory
     topics = topics or BagTopics()
@@ -692,16 +762,26 @@ def export_bag(
     if (fmt == "ros1") != (out.suffix == ".bag"):
         need = "must end in .bag" if fmt == "ros1" else "must not end in .bag (that names a ROS 1 bag)"
         raise InputError(f"a {fmt} bag path {need}", file=out)
-    if out.exists():
-        raise InputError("exists already; choose a new bag path", file=out)
+    try:
+        _check_bag_out(out, fmt, overwrite)
+    except OSError as exc:
+        raise InputError(f"--out cannot be used for the bag: {exc.strerror or type(exc).__name__}", file=out) from None
     recording = read_recording(run)
     origin, frame_id = _ros_bag_meta(recording)
     model, d = _ros_distortion(recording)
     stamps = list(_frame_stamps(recording, origin))  # validate every stamp before writing
     cam = recording.info.camera
+    staged: list[Path] = []
+
+    def failed(exc: BaseException) -> InputError:
+        text = _one_line(exc)
+        for target in staged:  # name the bag as the user knows it, not its hidden staging path
+            text = text.replace(str(target), str(out))
+        return InputError(f"cannot write the bag: {text}", file=out)
+
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with _BagWriter(out, fmt, storage) as w:
+        with staged_replacement(out, "bag") as target, _BagWriter(target, fmt, storage) as w:
+            staged.append(target)
             for seq, (rec, ns) in enumerate(stamps):
                 h = w.header(ns, frame_id, seq)
                 w.write(topics.camera_info, w.camera_info(h, cam, model, d), ns)
@@ -718,9 +798,9 @@ def export_bag(
     except InputError:
         raise
     except OSError as exc:
-        raise InputError(f"cannot write the bag: {_one_line(exc)}", file=out) from None
-    except Exception as exc:  # rosbags' writer errors (e.g. the path appeared meanwhile)
+        raise failed(exc) from None
+    except Exception as exc:  # rosbags' writer errors
         if not type(exc).__module__.startswith("rosbags"):
             raise
-        raise InputError(f"cannot write the bag: {_one_line(exc)}", file=out) from None
+        raise failed(exc) from None
     return out

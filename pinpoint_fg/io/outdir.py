@@ -24,6 +24,11 @@ read as a shorter run) writes through :func:`staged_output_dir` instead: into a 
 moved into place at the end, and removed, with the parents it created, when the command fails (an out-of-memory
 error, a corrupt input file met half-way, Ctrl-C). A SIGKILL can leave the hidden sibling, never a half-written
 ``--out``.
+
+A command whose output is one whole thing that ``--overwrite`` replaces whole (``export-bag``: a ROS 2 bag directory or
+a ROS 1 bag file, which rosbags writes only new) writes through :func:`staged_replacement`: into a hidden sibling,
+swapped for the old output only once it is complete, so a failure leaves the old output as it was. The command
+decides first what at ``--out`` may be replaced (a bag, never a directory holding other files).
 """
 
 from __future__ import annotations
@@ -264,6 +269,48 @@ def staged_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
         if isinstance(exc, InputError | OSError):
             _rename_staged(exc, stage, out)
         raise
+
+
+@contextmanager
+def staged_replacement(path: Path, what: str) -> Iterator[Path]:
+    """Yield a path at which to write the output ``what`` (a file or a directory, created by the writer) inside a
+    new hidden sibling directory of ``path``, under ``path``'s own name; on success move it to ``path``, replacing
+    what is there; on any exception remove the sibling (and the parents of ``path`` it created) and leave ``path``
+    as it was.
+
+    The caller has checked that what is at ``path`` may be replaced (nothing of the user's but the old output). A
+    file is replaced by one ``os.replace``; a directory is moved into the sibling, the new output into its place
+    (the old one moved back if that fails), and then removed. A SIGKILL between those two moves leaves the old
+    output in the hidden sibling, never half of either.
+    """
+    created = missing_dirs(path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        stage = path.parent / f".{path.name[:100]}.partial-{os.getpid()}-{secrets.token_hex(4)}"
+        stage.mkdir()
+    except OSError as exc:
+        remove_empty_dirs(created)
+        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=path_text(path)) from None
+    new = stage / path.name
+    try:
+        yield new
+        if path.is_dir() and not path.is_symlink():
+            old = stage / f".old-{secrets.token_hex(4)}"
+            os.rename(path, old)
+            try:
+                os.rename(new, path)
+            except BaseException:
+                os.rename(old, path)
+                raise
+        else:
+            os.replace(new, path)
+    except BaseException as exc:
+        shutil.rmtree(stage, ignore_errors=True)
+        remove_empty_dirs(created)
+        if isinstance(exc, InputError | OSError):
+            _rename_staged(exc, new, path)
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
 
 
 def _publish(stage: Path, out: Path) -> None:

@@ -203,11 +203,16 @@ class Recording:
     """The contents of recording.json."""
     frames: tuple[FrameRecord, ...]
     """The rows of frames.csv in file order (frame strictly increasing)."""
+    columns: tuple[str, ...] = ()
+    """The header of frames.csv as read (each name stripped), in file order, unknown columns included. Decision:
+    kept so that an unknown column that looks like a misspelt known one can be named on a ``note:`` line
+    (:func:`~pinpoint_fg.io.recording.reader.unknown_columns_note`); empty for a Recording built in memory."""
     _row_by_frame: dict[int, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))
         object.__setattr__(self, "frames", tuple(self.frames))
+        object.__setattr__(self, "columns", tuple(self.columns))
         object.__setattr__(self, "_row_by_frame", {f.frame: i + 1 for i, f in enumerate(self.frames)})
 
     def __len__(self) -> int:

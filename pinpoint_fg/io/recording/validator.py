@@ -279,11 +279,13 @@ def _parse_pose(ctx: _RowContext, cols: tuple[str, ...], values: list[float]) ->
 
 
 def _parse_frames(
-    root: Path, csv_path: Path, info: RecordingInfo | None, errors: list[InputError], inflate: bool = True
+    root: Path, csv_path: Path, info: RecordingInfo | None, errors: list[InputError], inflate: bool = True,
+    header_out: list[str] | None = None,
 ) -> list[FrameRecord] | None:
     """Validate ``frames.csv`` (and the files it names); append every problem to ``errors``.
 
-    ``inflate``: PNGs' compressed data is inflated and checked too (:func:`validate_run`)."""
+    ``inflate``: PNGs' compressed data is inflated and checked too (:func:`validate_run`). ``header_out``, when
+    given, receives the header's column names (stripped), unknown ones included."""
     n_before = len(errors)
     try:
         fh = open(csv_path, encoding="utf-8-sig", newline="")
@@ -314,6 +316,8 @@ def _parse_frames(
                     continue
                 if header is None:
                     header = [c.strip() for c in cells]
+                    if header_out is not None:
+                        header_out[:] = header
                     for i, name in enumerate(header):
                         if name in col:
                             errors.append(
@@ -500,7 +504,8 @@ def validate_run(path: str | Path, inflate: bool = True) -> tuple[Recording | No
                                  file=root))
         return None, errors
     info = _parse_info(root / RECORDING_JSON, errors)
-    frames = _parse_frames(root, root / FRAMES_CSV, info, errors, inflate)
+    header: list[str] = []
+    frames = _parse_frames(root, root / FRAMES_CSV, info, errors, inflate, header)
     if errors or info is None or frames is None:
         return None, errors
-    return Recording(root=root, info=info, frames=tuple(frames)), errors
+    return Recording(root=root, info=info, frames=tuple(frames), columns=tuple(header)), errors

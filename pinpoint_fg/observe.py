@@ -498,7 +498,8 @@ def observe_frame(recording: Recording, rec: FrameRecord, max_points: int = 200)
         if px is not None and not np.isfinite(px).all():  # the reader's grid check makes this rare; never silent
             raise InputError(f"frame {rec.frame}: the {name} at ({raw[0]:g}, {raw[1]:g}) px cannot be undistorted "
                              "with recording.json's camera.distortion (NaN or inf)",
-                             file=Path(recording.root) / "frames.csv", column=f"{name}_u")
+                             file=Path(recording.root) / "frames.csv", row=recording.row_of(rec),
+                             column=f"{name}_u_px")
     backbone = ignored = None
     if rec.mask is not None:
         mask = recording.load_mask(rec)

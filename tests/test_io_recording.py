@@ -15,13 +15,9 @@ from factors.geometry import NeedleModel, PinholeCamera
 from factors.lie import se3_exp
 from pinpoint_fg.cli import main
 from pinpoint_fg.errors import InputError
+from pinpoint_fg.io.recording.columns import near_miss_columns
 from pinpoint_fg.io.recording.png import png_size
-from pinpoint_fg.io.recording.reader import (
-    near_miss_columns,
-    read_recording,
-    summarize_recording,
-    unknown_columns_note,
-)
+from pinpoint_fg.io.recording.reader import read_recording, summarize_recording, unknown_columns_note
 from pinpoint_fg.io.recording.schema import KNOWN_COLUMNS, QUAT_NORM_TOL, FrameRecord, Recording, RecordingInfo
 from pinpoint_fg.io.recording.validator import validate_run
 from pinpoint_fg.io.recording.writer import RecordingWriter, replace_ground_truth, write_recording
@@ -655,6 +651,19 @@ def test_near_miss_columns_rules() -> None:
                                          "Tip-V-px": "tip_v_px", "grasper_qww": "grasper_qw", "gt_wq": "gt_qw"}
     # a variant of a column the header has is no near miss of another, absent one (tip_v_px)
     assert near_miss_columns(("frame", "t_s", "tip_u_px", "Tip_U_px", "tip_u_pxx")) == {}
+
+
+def test_missing_column_error_names_its_look_alike(run) -> None:
+    """A typo inside a group the header otherwise has is an error; it names the look-alike column beside it."""
+    root = run[0]
+    rename_columns(root, {"grasper_qw": "grasper_wq"})
+    recording, errors = validate_run(root)
+    assert recording is None
+    missing = [e for e in errors if e.column == "grasper_qw"]
+    assert len(missing) == 1 and str(missing[0]).endswith("; the header's 'grasper_wq' looks like it")
+    rename_columns(root, {}, drop=("grasper_wq",))  # a plain omission names nothing else
+    _, errors = validate_run(root)
+    assert [str(e).endswith(")") for e in errors if e.column == "grasper_qw"] == [True]
 
 
 def test_cli_validate_prints_the_renamed_column_note(run, capsys) -> None:

@@ -228,7 +228,8 @@ def test_points_the_lens_model_cannot_undistort_are_a_located_error(tmp_path, mo
     monkeypatch.setattr(PinholeCamera, "undistort_px", lambda self, pts: np.full(np.shape(pts), np.nan))
     with pytest.raises(InputError) as err:
         observe_frame(recording, recording.frames[0])
-    assert err.value.column == "tip_u" and err.value.file.endswith("frames.csv") and "frame 0" in str(err.value)
+    assert err.value.column == "tip_u_px" and err.value.file.endswith("frames.csv") and "frame 0" in str(err.value)
+    assert err.value.row == 1  # the data row of frame 0, as the reader's errors count rows
     with pytest.raises(InputError) as err:
         observe_frame(recording, recording.frames[1])
     assert err.value.file.endswith(".png") and "cannot be undistorted" in str(err.value)

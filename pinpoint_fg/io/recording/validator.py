@@ -26,6 +26,7 @@ import numpy as np
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat
 from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.jsonfile import json_shown, load_json
+from pinpoint_fg.io.recording.columns import near_miss_columns
 from pinpoint_fg.io.recording.png import image_file_problem
 from pinpoint_fg.io.recording.schema import (
     COLUMN_GROUPS,
@@ -325,14 +326,16 @@ def _parse_frames(
                             )
                         else:
                             col[name] = i
+                    meant = {k: u for u, k in near_miss_columns(header).items()}  # known column -> look-alike
                     for gname, gcols in COLUMN_GROUPS.items():
                         missing = [c for c in gcols if c not in col]
                         if gname == "required" or (missing and len(missing) < len(gcols)):
                             for c in missing:
+                                like = f"; the header's {shown(meant[c], 40)} looks like it" if c in meant else ""
                                 errors.append(
                                     InputError(
                                         f"header: required column missing (group {gname!r} needs "
-                                        f"{', '.join(gcols)})",
+                                        f"{', '.join(gcols)}){like}",
                                         file=csv_path,
                                         column=c,
                                     )

@@ -614,3 +614,31 @@ def test_reroute_margin_is_checked() -> None:
         with pytest.raises(ValueError, match="reroute_nats"):
             ModeSettings(reroute_nats=bad)
     assert ModeSettings(reroute_nats=float("inf")).reroute_nats == float("inf")
+
+
+def test_frame_polish_admits_a_proposal_whose_raw_pose_is_off_the_frames_optimum(monkeypatch) -> None:
+    """``frame_polish_iters``: a proposal 15 deg off the other circle is screened out as proposed (its one-step
+    prediction is far from the peak), but polished on the frame first, as MHT's proposals are, it reaches the other
+    circle and is admitted. The exact twin is admitted either way."""
+    from pinpoint_fg.proposals import twin_poses
+    from pinpoint_fg.trackers import svn_modes
+
+    T, _, arc = _ambiguous_scene()
+    sw = Switches(grasp_perpendicular=False, grasp_position=False, tip=False, tail=False)
+    lik = FrameLikelihood(Observation(0, 0.0, backbone_px=arc), TrackerConfig(CAM, NEEDLE, NoiseConfig(), sw).model)
+    w = Window(1, np.diag(np.r_[[0.3 ** 2] * 3, [3e-3 ** 2] * 3]), forgetting=1.0)  # frames far apart: a wide prior
+    w.start(T @ se3_exp(np.random.default_rng(5).normal(size=(8, 6)) * 0.2 * SCALE), lik, FIRST_PRIOR_SIGMA)
+    w.prior_mean[:] = T
+    lin = w.linearize()
+    found = basins(w.newest, lin, w.evidence)
+    twin = twin_poses(T[None], CAM.K, NEEDLE.radius_m, NEEDLE.tail_angle_rad, NEEDLE.tip_angle_rad)[0]
+    for deg, admitted_raw in ((0.0, True), (15.0, False)):
+        proposal = twin @ se3_exp(np.r_[np.deg2rad(deg), 0, 0, 0, 0, 0])
+        monkeypatch.setattr(svn_modes, "mode_proposals", lambda *a, proposal=proposal, **k: proposal[None])
+        raw = svn_modes.propose(w, lin, found, lik, ModeSettings())
+        polished = svn_modes.propose(w, lin, found, lik, ModeSettings(frame_polish_iters=6))
+        assert (raw.windows is not None) == admitted_raw, deg
+        assert polished.windows is not None and polished.windows.newest.shape == (1, 4, 4), deg
+        n_twin = twin[:3, 2] * np.sign(twin[2, 2])
+        n_new = polished.windows.newest[0, :3, 2]
+        assert np.degrees(np.arccos(min(1.0, abs(n_new @ n_twin)))) < 3.0, deg  # the other circle, not a third pose

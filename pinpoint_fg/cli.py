@@ -613,6 +613,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: What a Ctrl-C leaves, for the commands whose output is not written frame by frame.
+_INTERRUPTED = {
+    "export-bag": "interrupted; --out holds the old bag (or nothing) or the new one whole, never half of either",
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``pinpoint-fg`` console script."""
     args = build_parser().parse_args(argv)
@@ -625,7 +631,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc.filename or exc}: not found", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted; finished frames are on disk", file=sys.stderr)
+        print(_INTERRUPTED.get(args.command, "interrupted; finished frames are on disk"), file=sys.stderr)
         return 130
     except MemoryError as exc:
         # more frames, particles or a longer window than the machine holds (`simulate --frames 1e11` was NumPy's

@@ -353,7 +353,7 @@ def test_export_overwrite_refuses_what_is_not_a_bag(sim_run: Path, tmp_path: Pat
     (tmp_path / "dir.bag").mkdir()
     (tmp_path / "dir.bag" / "x").write_text("x")
     (tmp_path / "link").symlink_to(bag)
-    cases = [(bag, "ros2", "notes.txt"), (sim_run, "ros2", "recording.json"), (other, "ros1", "not a ROS 1 bag"),
+    cases = [(bag, "ros2", "notes.txt"), (sim_run, "ros2", "also an input"), (other, "ros1", "not a ROS 1 bag"),
              (tmp_path / "dir.bag", "ros1", "a directory"), (tmp_path / "link", "ros2", "symbolic link")]
     before = {p: _tree(p) for p, _, _ in cases}
     for path, fmt, why in cases:
@@ -362,18 +362,30 @@ def test_export_overwrite_refuses_what_is_not_a_bag(sim_run: Path, tmp_path: Pat
                 export_bag(sim_run, path, fmt=fmt, overwrite=overwrite)
             assert str(path) in str(ei.value) and "\n" not in str(ei.value)
     assert {p: _tree(p) for p, _, _ in cases} == before
+    run_before = _tree(sim_run)
+    for path, fmt in ((sim_run / "masks", "ros2"), (sim_run / "bags" / "new", "ros2"), (sim_run / "x.bag", "ros1")):
+        with pytest.raises(InputError, match="inside the input"):  # as every other command's output
+            export_bag(sim_run, path, fmt=fmt)
+    assert _tree(sim_run) == run_before
 
 
+@pytest.mark.parametrize("error", ["os", "sqlite"])
 @pytest.mark.parametrize(("fmt", "name"), [("ros2", "b2"), ("ros1", "b1.bag")])
 def test_export_overwrite_keeps_the_old_bag_when_writing_fails(sim_run: Path, tmp_path: Path, fmt: str, name: str,
-                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                error: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full disk half-way through the new bag: OSError, or sqlite3's own error under the default ROS 2 storage
+    (``sqlite3.OperationalError: disk I/O error`` under ``ulimit -f``, a traceback before)."""
+    import sqlite3
+
     bag = export_bag(sim_run, tmp_path / name, fmt=fmt)
     before = _tree(bag)
     calls = []
 
-    def failing_write(self, topic, msg, ns):  # a full disk half-way through the new bag
+    def failing_write(self, topic, msg, ns):
         calls.append(topic)
         if len(calls) == 7:
+            if error == "sqlite":
+                raise sqlite3.OperationalError("No space left on device (disk I/O error)")
             raise OSError(28, "No space left on device", str(self.writer.path))
         original(self, topic, msg, ns)
 
@@ -398,3 +410,20 @@ def test_cli_export_bag_overwrite(sim_run: Path, tmp_path: Path, capsys: pytest.
     assert err.count("\n") == 1 and str(bag) in err and "--overwrite" in err and "Traceback" not in err
     assert main(["export-bag", str(sim_run), "--out", str(bag), "--overwrite", "--topic-gt", "none"]) == 0
     assert "/needle/gt_pose" not in _topics(bag)
+
+
+def test_cli_export_bag_interrupted_says_what_is_at_out(sim_run: Path, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str],
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C printed "finished frames are on disk", which export-bag never writes; the old bag stays whole."""
+    bag = export_bag(sim_run, tmp_path / "b2")
+    before = _tree(bag)
+
+    def interrupted(self, topic, msg, ns):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_BagWriter, "write", interrupted)
+    assert main(["export-bag", str(sim_run), "--out", str(bag), "--overwrite"]) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "old bag" in err and "frames" not in err
+    assert _tree(bag) == before and sorted(p.name for p in tmp_path.iterdir()) == ["b2"]

@@ -183,13 +183,78 @@ def test_staged_replacement_swaps_a_directory_whole_or_not_at_all(tmp_path: Path
         real_rename(src, dst)
 
     monkeypatch.setattr(os, "rename", rename)
-    with pytest.raises(OSError) as ei, staged_replacement(out, "bag") as new:
+    with pytest.raises(InputError, match="the old bag is as it was") as ei, staged_replacement(out, "bag") as new:
         new.mkdir()
         (new / "new.db3").write_text("new")
-    assert ei.value.filename == str(out) and len(calls) == 3  # named as the user knows it; moved back
+    assert ei.value.file == str(out) and len(calls) == 3  # named as the user knows it; moved back
+    assert "\n" not in str(ei.value) and "Permission denied" in str(ei.value)
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "old.db3"]
     monkeypatch.setattr(os, "rename", real_rename)
     with staged_replacement(out, "bag") as new:
         new.mkdir()
         (new / "new.db3").write_text("new")
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "new.db3"]
+
+
+def test_staged_replacement_never_deletes_the_old_output_when_it_cannot_be_moved_back(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both the move of the new output into place and the move of the old one back fail: the old output is kept in
+    the hidden sibling (not removed with it), and the one-line error says where."""
+    out = tmp_path / "bag"
+    out.mkdir()
+    (out / "old.db3").write_text("old")
+    real_rename = os.rename
+    calls = []
+
+    def rename(src, dst):  # the first move (the old output aside) works, every later one fails
+        calls.append(dst)
+        if len(calls) > 1:
+            raise OSError(5, "Input/output error", str(src))
+        real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename)
+    with pytest.raises(InputError, match="nor the old one back") as ei, staged_replacement(out, "bag") as new:
+        new.mkdir()
+        (new / "new.db3").write_text("new")
+    kept = [p for p in tmp_path.rglob("old.db3")]
+    assert len(kept) == 1 and kept[0].read_text() == "old" and str(kept[0].parent) in str(ei.value)
+    assert "\n" not in str(ei.value)
+
+
+def test_staged_replacement_holds_back_ctrl_c_between_the_two_moves(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A SIGINT raised between moving the old output aside and the new one into place takes effect after both: the new
+    output is in place, the old one and the hidden sibling are gone, and the KeyboardInterrupt still reaches the
+    caller."""
+    import signal
+
+    out = tmp_path / "bag"
+    out.mkdir()
+    (out / "old.db3").write_text("old")
+    real_rename = os.rename
+    calls = []
+
+    def rename(src, dst):
+        calls.append(dst)
+        real_rename(src, dst)
+        if len(calls) == 1:  # right after the old output was moved aside
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(os, "rename", rename)
+    with pytest.raises(KeyboardInterrupt), staged_replacement(out, "bag") as new:
+        new.mkdir()
+        (new / "new.db3").write_text("new")
+    assert len(calls) == 2
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "new.db3"]
+
+
+def test_staged_replacement_of_the_current_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``.`` has no name to stage under: the path is made absolute first, so an empty current directory is replaced
+    by the new output like any other."""
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    with staged_replacement(".", "bag") as new:
+        new.mkdir()
+        (new / "new.db3").write_text("new")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["here", "new.db3"]

@@ -616,6 +616,14 @@ def test_reroute_margin_is_checked() -> None:
     assert ModeSettings(reroute_nats=float("inf")).reroute_nats == float("inf")
 
 
+def test_frame_polish_iters_is_checked() -> None:
+    """A negative count meant 0 silently; 2.5 or '6' failed inside tracking."""
+    for bad in (-3, 2.5, "6", float("nan"), True):
+        with pytest.raises(ValueError, match="frame_polish_iters"):
+            ModeSettings(frame_polish_iters=bad)
+    assert ModeSettings(frame_polish_iters=np.int64(6)).frame_polish_iters == 6
+
+
 def test_frame_polish_admits_a_proposal_whose_raw_pose_is_off_the_frames_optimum(monkeypatch) -> None:
     """``frame_polish_iters``: a proposal 15 deg off the other circle is screened out as proposed (its one-step
     prediction is far from the peak), but polished on the frame first, as MHT's proposals are, it reaches the other

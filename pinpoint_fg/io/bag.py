@@ -69,7 +69,9 @@ Decisions (the issue leaves them open; import and export agree on every one):
   bag) is refused with or without ``overwrite``, and so is a symbolic link (replacing the link would leave its
   target; writing through it would replace a bag elsewhere). The new bag is written into a hidden sibling and
   swapped in once complete (:func:`~pinpoint_fg.io.outdir.staged_replacement`): the old bag is replaced whole
-  (no ``.db3`` left beside a new ``.mcap``), and kept as it was when writing fails.
+  (no ``.db3`` left beside a new ``.mcap``), and kept as it was when writing fails (sqlite's own errors, a full
+  disk under the default storage, included). An ``out`` that is the run or lies inside it is refused, as every
+  command's output inside its input is.
 * **Export format.** ROS 2 (rosbag2 version 9, ``sqlite3`` storage by default, ``mcap`` on request;
   CDR, ``ROS2_HUMBLE`` type store) or ROS 1 (``.bag`` version 2.0, ``ROS1_NOETIC`` type store).
   The bag's receive time of every message is its header stamp. All messages have
@@ -95,7 +97,13 @@ import numpy as np
 
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat, xyz_quat_from_pose
 from pinpoint_fg.errors import InputError, path_argument
-from pinpoint_fg.io.outdir import check_output_dir, staged_output_dir, staged_replacement
+from pinpoint_fg.io.outdir import (
+    check_not_an_input,
+    check_output_dir,
+    shown_entries,
+    staged_output_dir,
+    staged_replacement,
+)
 from pinpoint_fg.io.recording.reader import read_recording
 from pinpoint_fg.io.recording.schema import (
     MAX_ABS_ANGLE_RAD,
@@ -685,7 +693,6 @@ _ROS2_STORAGE_SUFFIXES = (".db3", ".mcap")
 _ROS1_MAGIC = b"#ROSBAG V2.0\n"
 #: The top-level key of a rosbag2 ``metadata.yaml``.
 _ROS2_METADATA_KEY = b"rosbag2_bagfile_information:"
-_SHOWN_ENTRIES = 3
 
 
 def _not_a_bag(out: Path, fmt: str) -> str | None:
@@ -708,7 +715,7 @@ def _not_a_bag(out: Path, fmt: str) -> str | None:
         other = [e.name for e in entries if not e.is_file(follow_symlinks=False)
                  or not (e.name == "metadata.yaml" or e.name.endswith(_ROS2_STORAGE_SUFFIXES))]
         if other:
-            shown = ", ".join(other[:_SHOWN_ENTRIES]) + (", ..." if len(other) > _SHOWN_ENTRIES else "")
+            shown = shown_entries(other)
             return (f"holds {len(other)} entr{'y' if len(other) == 1 else 'ies'} a ROS 2 bag does not ({shown}; a bag "
                     "holds metadata.yaml and its .db3 or .mcap files only)")
         meta = out / "metadata.yaml"
@@ -762,6 +769,7 @@ def export_bag(
     if (fmt == "ros1") != (out.suffix == ".bag"):
         need = "must end in .bag" if fmt == "ros1" else "must not end in .bag (that names a ROS 1 bag)"
         raise InputError(f"a {fmt} bag path {need}", file=out)
+    check_not_an_input(out, (run,), "bag")
     try:
         _check_bag_out(out, fmt, overwrite)
     except OSError as exc:
@@ -797,7 +805,7 @@ def export_bag(
                         w.write(topic, w.pose(h, T_), ns)
     except InputError:
         raise
-    except OSError as exc:
+    except (OSError, sqlite3.Error) as exc:  # sqlite3: a full disk or quota under the default storage
         raise failed(exc) from None
     except Exception as exc:  # rosbags' writer errors
         if not type(exc).__module__.startswith("rosbags"):

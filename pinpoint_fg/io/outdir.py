@@ -1,7 +1,7 @@
 """Output directories and files: the one place that decides whether ``--out`` may be written.
 
-Rules (every subcommand that writes goes through :func:`prepare_output_dir` or
-:func:`prepare_output_file`, so a user's results are never replaced silently):
+Rules (every subcommand that writes goes through :func:`prepare_output_dir`, :func:`prepare_output_file` or their
+staged forms below, so a user's results are never replaced silently):
 
 * ``--out`` naming an existing **file** (for a directory output), or a path **under** a file,
   is refused;
@@ -27,8 +27,10 @@ error, a corrupt input file met half-way, Ctrl-C). A SIGKILL can leave the hidde
 
 A command whose output is one whole thing that ``--overwrite`` replaces whole (``export-bag``: a ROS 2 bag directory or
 a ROS 1 bag file, which rosbags writes only new) writes through :func:`staged_replacement`: into a hidden sibling,
-swapped for the old output only once it is complete, so a failure leaves the old output as it was. The command
-decides first what at ``--out`` may be replaced (a bag, never a directory holding other files).
+swapped for the old output only once it is complete, so a failure leaves the old output as it was; this is the
+one ``--overwrite`` that removes files (the old bag's, which the new bag replaces whole). The command decides first
+what at ``--out`` may be replaced (a bag, never a directory holding other files) and refuses an ``--out`` in its
+input (:func:`check_not_an_input`). Replacing needs room for both for a moment.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from __future__ import annotations
 import os
 import secrets
 import shutil
+import signal
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -92,10 +95,13 @@ def _broken_link(p: Path) -> str | None:
     return None
 
 
-def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
-                     inputs: Sequence[str | os.PathLike] = ()) -> Path:
-    """The checks of :func:`prepare_output_dir` without creating anything (for commands that read and
-    validate all their input first and must leave nothing behind when it is bad)."""
+def shown_entries(names: Sequence[str]) -> str:
+    """The first few of a directory's entry ``names`` for a one-line message (``a, b, c, ...``)."""
+    return ", ".join(names[:_SHOWN_ENTRIES]) + (", ..." if len(names) > _SHOWN_ENTRIES else "")
+
+
+def check_not_an_input(path: str | os.PathLike, inputs: Sequence[str | os.PathLike], what: str) -> None:
+    """Refuse an output ``path`` that is one of the command's ``inputs`` or lies inside one (one line each)."""
     same = _same_dir(path, inputs)
     if same is not None:
         raise InputError(f"--out is also an input of this command; write the {what} to a directory of its own",
@@ -104,6 +110,13 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     if owner is not None:
         raise InputError(f"--out is inside the input {path_text(owner)}; the {what} would be mixed into that input's "
                          "files (and could replace one of them): choose an --out outside it", file=path_text(path))
+
+
+def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
+                     inputs: Sequence[str | os.PathLike] = ()) -> Path:
+    """The checks of :func:`prepare_output_dir` without creating anything (for commands that read and
+    validate all their input first and must leave nothing behind when it is bad)."""
+    check_not_an_input(path, inputs, what)
     p = _usable(path, what)
     try:
         if p.exists() or p.is_symlink():
@@ -115,7 +128,7 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
                                  file=p)
             entries = sorted(e.name for e in os.scandir(p))
             if entries and not overwrite:
-                shown = ", ".join(entries[:_SHOWN_ENTRIES]) + (", ..." if len(entries) > _SHOWN_ENTRIES else "")
+                shown = shown_entries(entries)
                 raise InputError(
                     f"--out is not empty ({len(entries)} entries: {shown}); pass --overwrite to replace the {what} "
                     "in it, or choose another --out",
@@ -253,13 +266,7 @@ def staged_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     """
     out = check_output_dir(path, overwrite, what, inputs)
     created = [d for d in out.absolute().parents if not d.exists()]
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        stage = out.parent / f".{out.name[:100]}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-        stage.mkdir()
-    except OSError as exc:
-        remove_empty_dirs(created)
-        raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=path_text(out)) from None
+    stage = _new_stage(out, what, created)
     try:
         yield stage
         _publish(stage, out)
@@ -272,18 +279,44 @@ def staged_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
 
 
 @contextmanager
-def staged_replacement(path: Path, what: str) -> Iterator[Path]:
+def staged_replacement(path: str | os.PathLike, what: str) -> Iterator[Path]:
     """Yield a path at which to write the output ``what`` (a file or a directory, created by the writer) inside a
-    new hidden sibling directory of ``path``, under ``path``'s own name; on success move it to ``path``, replacing
-    what is there; on any exception remove the sibling (and the parents of ``path`` it created) and leave ``path``
-    as it was.
+    new hidden sibling directory of ``path``, under ``path``'s own name; on success swap it in for what is at
+    ``path``; on any exception before the swap remove the sibling (and the parents of ``path`` it created) and leave
+    ``path`` as it was.
 
     The caller has checked that what is at ``path`` may be replaced (nothing of the user's but the old output). A
-    file is replaced by one ``os.replace``; a directory is moved into the sibling, the new output into its place
-    (the old one moved back if that fails), and then removed. A SIGKILL between those two moves leaves the old
-    output in the hidden sibling, never half of either.
+    file is replaced by one ``os.replace``. A directory is moved into the sibling and the new output into its place,
+    with SIGINT and SIGTERM held back between the two moves (a Ctrl-C there takes effect once both are done); when
+    the second move fails the old output is moved back, and when that fails too it is left in the sibling, which the
+    one-line error names: the old output is never deleted before the new one is in place. A SIGKILL between the two
+    moves leaves it in the sibling likewise. ``path`` is taken as absolute first (``.`` has no name to stage under).
     """
+    path = Path(os.path.abspath(path))
     created = missing_dirs(path.parent)
+    stage = _new_stage(path, what, created)
+    new = stage / path.name
+    try:
+        yield new
+    except BaseException as exc:
+        shutil.rmtree(stage, ignore_errors=True)
+        remove_empty_dirs(created)
+        if isinstance(exc, InputError | OSError):
+            _rename_staged(exc, new, path)
+        raise
+    swapped = False
+    try:
+        with _signals_held():
+            _swap_in(new, path, stage, what)
+            swapped = True
+    finally:
+        if swapped:
+            shutil.rmtree(stage, ignore_errors=True)
+
+
+def _new_stage(path: Path, what: str, created: list[Path]) -> Path:
+    """A new hidden sibling directory of ``path`` to stage the output ``what`` in (``created``: the parents of
+    ``path`` made for it, removed again when it cannot be made)."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         stage = path.parent / f".{path.name[:100]}.partial-{os.getpid()}-{secrets.token_hex(4)}"
@@ -291,26 +324,52 @@ def staged_replacement(path: Path, what: str) -> Iterator[Path]:
     except OSError as exc:
         remove_empty_dirs(created)
         raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=path_text(path)) from None
-    new = stage / path.name
-    try:
-        yield new
-        if path.is_dir() and not path.is_symlink():
-            old = stage / f".old-{secrets.token_hex(4)}"
-            os.rename(path, old)
-            try:
-                os.rename(new, path)
-            except BaseException:
-                os.rename(old, path)
-                raise
-        else:
+    return stage
+
+
+def _swap_in(new: Path, path: Path, stage: Path, what: str) -> None:
+    """Put ``new`` at ``path`` (:func:`staged_replacement`): one ``os.replace`` for a file; for a directory, the
+    old one moved into ``stage`` first and back when the new one cannot take its place."""
+    if not (path.is_dir() and not path.is_symlink()):
+        try:
             os.replace(new, path)
-    except BaseException as exc:
+        except OSError as exc:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise InputError(f"cannot replace --out with the new {what}: {_os_problem(exc)}", file=path) from None
+        return
+    old = stage / f".old-{secrets.token_hex(4)}"
+    try:
+        os.rename(path, old)
+    except OSError as exc:
         shutil.rmtree(stage, ignore_errors=True)
-        remove_empty_dirs(created)
-        if isinstance(exc, InputError | OSError):
-            _rename_staged(exc, new, path)
-        raise
-    shutil.rmtree(stage, ignore_errors=True)
+        raise InputError(f"cannot move the old {what} aside to replace it: {_os_problem(exc)}", file=path) from None
+    try:
+        os.rename(new, path)
+    except OSError as exc:
+        why = _os_problem(exc)
+        try:
+            os.rename(old, path)
+        except OSError:
+            raise InputError(f"cannot move the new {what} into place ({why}) nor the old one back; the old {what} "
+                             f"is kept at {old}", file=path) from None
+        shutil.rmtree(stage, ignore_errors=True)
+        raise InputError(f"cannot move the new {what} into place: {why}; the old {what} is as it was",
+                         file=path) from None
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while the block runs (they take effect right after it); a no-op where the
+    platform cannot block signals."""
+    block = getattr(signal, "pthread_sigmask", None)
+    if block is None:
+        yield
+        return
+    previous = block(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        block(signal.SIG_SETMASK, previous)
 
 
 def _publish(stage: Path, out: Path) -> None:

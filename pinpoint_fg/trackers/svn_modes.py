@@ -146,6 +146,9 @@ class ModeSettings:
     frame). Not the default."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.frame_polish_iters, bool) or not isinstance(self.frame_polish_iters, int | np.integer) \
+                or self.frame_polish_iters < 0:
+            raise ValueError(f"frame_polish_iters must be an integer >= 0, got {self.frame_polish_iters!r}")
         if not self.reroute_nats >= 0:
             raise ValueError(f"reroute_nats must be >= 0 (inf: no rerouting), got {self.reroute_nats}")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
-from pinpoint_fg.io.recording.columns import near_miss_columns
+from pinpoint_fg.io.recording.columns import near_miss_columns, suggestion
 from pinpoint_fg.io.recording.schema import OCCLUSION_LABELS, Recording, shown
 from pinpoint_fg.io.recording.validator import validate_run
 
@@ -88,14 +88,24 @@ def no_image_evidence_note(rec: Recording, frames: list | None = None) -> str | 
             "the poses come from the prior and the kinematics (where present) alone")
 
 
+#: How many near-miss columns the note names before "and N more" (a generated header can hold thousands).
+SHOWN_NEAR_MISSES = 3
+
+
 def unknown_columns_note(rec: Recording) -> str | None:
     """One line for the user naming the unknown frames.csv columns that look like a misspelt known one (absent from
-    the header) and the column each most likely meant (:func:`near_miss_columns`); None when there are none."""
+    the header) and the columns they most likely meant (:func:`near_miss_columns`; each once, with its unit when the
+    look-alike does not state it); None when there are none. At most :data:`SHOWN_NEAR_MISSES` of each are named."""
     near = near_miss_columns(rec.columns)
     if not near:
         return None
-    names = ", ".join(shown(c, 40) for c in near)
-    meant = ", ".join(repr(k) for k in near.values())
+
+    def listed(items: list[str]) -> str:
+        more = len(items) - SHOWN_NEAR_MISSES
+        return ", ".join(items[:SHOWN_NEAR_MISSES]) + (f" and {more} more" if more > 0 else "")
+
+    names = listed([shown(c, 40) for c in near])
+    meant = listed(list(dict.fromkeys(suggestion(c, k) for c, k in near.items())))
     verb = "column {} is" if len(near) == 1 else "columns {} are"
     return (f"note: {Path(rec.root) / 'frames.csv'}: {verb.format(names)} not in the format and "
             f"{'is' if len(near) == 1 else 'are'} ignored (did you mean {meant}?)")

@@ -326,12 +326,15 @@ def _parse_frames(
                             )
                         else:
                             col[name] = i
-                    meant = {k: u for u, k in near_miss_columns(header).items()}  # known column -> look-alike
+                    meant: dict[str, list[str]] = {}  # known column -> the header's look-alikes of it
+                    for u, k in near_miss_columns(header).items():
+                        meant.setdefault(k, []).append(u)
                     for gname, gcols in COLUMN_GROUPS.items():
                         missing = [c for c in gcols if c not in col]
                         if gname == "required" or (missing and len(missing) < len(gcols)):
                             for c in missing:
-                                like = f"; the header's {shown(meant[c], 40)} looks like it" if c in meant else ""
+                                like = (f"; the header's {', '.join(shown(u, 40) for u in meant[c][:3])} "
+                                        f"look{'s' if len(meant[c]) == 1 else ''} like it" if c in meant else "")
                                 errors.append(
                                     InputError(
                                         f"header: required column missing (group {gname!r} needs "

@@ -241,9 +241,13 @@ def test_staged_replacement_holds_back_ctrl_c_between_the_two_moves(tmp_path: Pa
             os.kill(os.getpid(), signal.SIGINT)
 
     monkeypatch.setattr(os, "rename", rename)
-    with pytest.raises(KeyboardInterrupt), staged_replacement(out, "bag") as new:
-        new.mkdir()
-        (new / "new.db3").write_text("new")
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # a pytest-xdist worker ignores SIGINT
+    try:
+        with pytest.raises(KeyboardInterrupt), staged_replacement(out, "bag") as new:
+            new.mkdir()
+            (new / "new.db3").write_text("new")
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert len(calls) == 2
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "new.db3"]
 

@@ -39,6 +39,7 @@ import os
 import secrets
 import shutil
 import signal
+import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -289,7 +290,8 @@ def staged_replacement(path: str | os.PathLike, what: str) -> Iterator[Path]:
     file is replaced by one ``os.replace``. A directory is moved into the sibling and the new output into its place,
     with SIGINT and SIGTERM held back between the two moves (a Ctrl-C there takes effect once both are done); when
     the second move fails the old output is moved back, and when that fails too it is left in the sibling, which the
-    one-line error names: the old output is never deleted before the new one is in place. A SIGKILL between the two
+    one-line error names: the old output is never deleted before the new one is in place (and is deleted, with the
+    sibling, before a held signal takes effect). A SIGKILL between the two
     moves leaves it in the sibling likewise. ``path`` is taken as absolute first (``.`` has no name to stage under).
     """
     path = Path(os.path.abspath(path))
@@ -304,14 +306,9 @@ def staged_replacement(path: str | os.PathLike, what: str) -> Iterator[Path]:
         if isinstance(exc, InputError | OSError):
             _rename_staged(exc, new, path)
         raise
-    swapped = False
-    try:
-        with _signals_held():
-            _swap_in(new, path, stage, what)
-            swapped = True
-    finally:
-        if swapped:
-            shutil.rmtree(stage, ignore_errors=True)
+    with _signals_held():
+        _swap_in(new, path, stage, what)
+        shutil.rmtree(stage, ignore_errors=True)  # the old output, once the new one is in place
 
 
 def _new_stage(path: Path, what: str, created: list[Path]) -> Path:
@@ -359,17 +356,27 @@ def _swap_in(new: Path, path: Path, stage: Path, what: str) -> None:
 
 @contextmanager
 def _signals_held() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM back while the block runs (they take effect right after it); a no-op where the
-    platform cannot block signals."""
-    block = getattr(signal, "pthread_sigmask", None)
-    if block is None:
+    """Hold SIGINT and SIGTERM back while the block runs: a signal that arrives meanwhile is handed to its own
+    handler right after the block (Ctrl-C's KeyboardInterrupt, SIGTERM's default exit). Python runs signal handlers
+    in the main thread whichever thread the kernel delivers to, so the handlers are swapped, not the thread's signal
+    mask; outside the main thread (where handlers cannot be set) the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = block(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    caught: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in held}
     try:
         yield
     finally:
-        block(signal.SIG_SETMASK, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for s in dict.fromkeys(caught):
+            handler = previous[s]
+            if callable(handler):
+                handler(s, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(s)
 
 
 def _publish(stage: Path, out: Path) -> None:

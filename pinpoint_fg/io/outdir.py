@@ -22,8 +22,8 @@ on the command line). The directory is created (with its parents) when the check
 A command whose output is only of use whole (``simulate``, ``import-bop``, ``import-bag``: a run cut short would be
 read as a shorter run) writes through :func:`staged_output_dir` instead: into a hidden sibling directory that is
 moved into place at the end, and removed, with the parents it created, when the command fails (an out-of-memory
-error, a corrupt input file met half-way, Ctrl-C). A SIGKILL can leave the hidden sibling, never a half-written
-``--out``.
+error, a corrupt input file met half-way, Ctrl-C). A SIGKILL or SIGTERM (whose default action runs no cleanup) can
+leave the hidden sibling, never a half-written ``--out``.
 
 A command whose output is one whole thing that ``--overwrite`` replaces whole (``export-bag``: a ROS 2 bag directory or
 a ROS 1 bag file, which rosbags writes only new) writes through :func:`staged_replacement`: into a hidden sibling,
@@ -291,8 +291,9 @@ def staged_replacement(path: str | os.PathLike, what: str) -> Iterator[Path]:
     with SIGINT and SIGTERM held back between the two moves (a Ctrl-C there takes effect once both are done); when
     the second move fails the old output is moved back, and when that fails too it is left in the sibling, which the
     one-line error names: the old output is never deleted before the new one is in place (and is deleted, with the
-    sibling, before a held signal takes effect). A SIGKILL between the two
-    moves leaves it in the sibling likewise. ``path`` is taken as absolute first (``.`` has no name to stage under).
+    sibling, before a held signal takes effect). A SIGTERM while the new output is written leaves the sibling with
+    its half (the old output untouched), as a SIGKILL does; a SIGKILL between the two moves leaves the old output in
+    the sibling. ``path`` is taken as absolute first (``.`` has no name to stage under).
     """
     path = Path(os.path.abspath(path))
     created = missing_dirs(path.parent)

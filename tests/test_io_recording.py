@@ -692,6 +692,11 @@ def test_missing_column_error_names_its_look_alike(run) -> None:
     assert [str(e).endswith("; the header's 'grasper_wq', 'Grasper_QW' look like it")
             for e in errors if e.column == "grasper_qw"] == [True]
     rename_columns(root, {}, drop=("Grasper_QW",))
+    rename_columns(root, {"grasper_wq": "grasper_qw", "grasper_x_m": "grasper_x_mm"})  # another unit: said so
+    _, errors = validate_run(root)
+    assert [str(e).endswith("; the header's 'grasper_x_mm' looks like it (grasper_x_m is in metres)")
+            for e in errors if e.column == "grasper_x_m"] == [True]
+    rename_columns(root, {"grasper_x_mm": "grasper_x_m", "grasper_qw": "grasper_wq"})
     rename_columns(root, {}, drop=("grasper_wq",))  # a plain omission names nothing else
     _, errors = validate_run(root)
     assert [str(e).endswith(")") for e in errors if e.column == "grasper_qw"] == [True]

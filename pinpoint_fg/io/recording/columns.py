@@ -45,7 +45,7 @@ def _closest_known(name: str) -> str | None:
     suffix away (:data:`_SUFFIX_VARIANTS`), then the best ``difflib`` ratio of at least :data:`NEAR_MISS_CUTOFF`
     (:data:`SWAPPED_LETTERS_CUTOFF` for the same letters) among the known columns ``name`` does not extend by a word
     (``occlusion_s`` is not ``occlusion``). Two known columns tied at the best ratio: no suggestion
-    (``gt_q`` is ``gt_qw``, ``gt_qx``, ``gt_qy`` or ``gt_qz``), unless one alone has the same letters."""
+    (``grasper_qe`` is ``grasper_qw``, ``_qx``, ``_qy`` or ``_qz``), unless one alone has the same letters."""
     u = _normal(name)
     if u in _SUFFIX_VARIANTS:  # the known column itself (a case variant) or a suffix away from it
         return _SUFFIX_VARIANTS[u]
@@ -74,7 +74,7 @@ def unit_of(column: str) -> str | None:
     return next((unit for sfx, unit in UNIT_SUFFIXES.items() if column.endswith(sfx)), None)
 
 
-def _differs_in_unit(name: str, known: str) -> bool:
+def differs_in_unit(name: str, known: str) -> bool:
     """Whether the unknown column ``name`` does not end in the unit suffix of ``known`` (``gt_x_mm``, ``tip_u``)."""
     return unit_of(known) is not None and not _normal(name).endswith(known[known.rindex("_"):])
 
@@ -82,7 +82,7 @@ def _differs_in_unit(name: str, known: str) -> bool:
 def suggestion(name: str, known: str) -> str:
     """``'known'``, and its unit when ``name`` does not state it (``'gt_x_m' (metres)`` for ``gt_x_mm``): a column
     renamed as suggested must hold values in the format's unit."""
-    return f"{known!r} ({unit_of(known)})" if _differs_in_unit(name, known) else repr(known)
+    return f"{known!r} ({unit_of(known)})" if differs_in_unit(name, known) else repr(known)
 
 
 def near_miss_columns(columns: Sequence[str]) -> dict[str, str]:

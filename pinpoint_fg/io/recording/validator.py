@@ -26,7 +26,7 @@ import numpy as np
 from factors.geometry import NeedleModel, PinholeCamera, pose_from_xyz_quat
 from pinpoint_fg.errors import InputError, path_argument
 from pinpoint_fg.io.jsonfile import json_shown, load_json
-from pinpoint_fg.io.recording.columns import near_miss_columns
+from pinpoint_fg.io.recording.columns import differs_in_unit, near_miss_columns, unit_of
 from pinpoint_fg.io.recording.png import image_file_problem
 from pinpoint_fg.io.recording.schema import (
     COLUMN_GROUPS,
@@ -333,8 +333,11 @@ def _parse_frames(
                         missing = [c for c in gcols if c not in col]
                         if gname == "required" or (missing and len(missing) < len(gcols)):
                             for c in missing:
-                                like = (f"; the header's {', '.join(shown(u, 40) for u in meant[c][:3])} "
-                                        f"look{'s' if len(meant[c]) == 1 else ''} like it" if c in meant else "")
+                                like = "" if c not in meant else (
+                                    f"; the header's {', '.join(shown(u, 40) for u in meant[c][:3])} "
+                                    f"look{'s' if len(meant[c]) == 1 else ''} like it"
+                                    + (f" ({c} is in {unit_of(c)})" if any(differs_in_unit(u, c) for u in meant[c])
+                                       else ""))
                                 errors.append(
                                     InputError(
                                         f"header: required column missing (group {gname!r} needs "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -161,6 +162,22 @@ def test_cli_refuses_an_out_inside_the_input_recording(command: list[str], sub: 
     assert sorted(str(p.relative_to(run)) for p in run.rglob("*")) == before
 
 
+def _renames_failing(monkeypatch: pytest.MonkeyPatch, fails: Callable[[int], bool], error: OSError) -> list:
+    """Patch ``os.rename`` to raise ``error`` (naming the source) on the calls whose 1-based number ``fails``; the
+    list it returns collects every call's destination."""
+    real_rename = os.rename
+    calls: list = []
+
+    def rename(src, dst):
+        calls.append(dst)
+        if fails(len(calls)):
+            raise OSError(error.errno, error.strerror, str(src))
+        real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename)
+    return calls
+
+
 def test_staged_replacement_swaps_a_directory_whole_or_not_at_all(tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     """The new output replaces the old whole once written; when writing, or moving it into place, fails, the old
@@ -174,15 +191,8 @@ def test_staged_replacement_swaps_a_directory_whole_or_not_at_all(tmp_path: Path
         raise RuntimeError("disk full")
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["bag", "old.db3"]
     real_rename = os.rename
-    calls = []
-
-    def rename(src, dst):  # the second move (the new output into place) fails
-        calls.append(dst)
-        if len(calls) == 2:
-            raise OSError(13, "Permission denied", str(src))
-        real_rename(src, dst)
-
-    monkeypatch.setattr(os, "rename", rename)
+    # the second move (the new output into place) fails
+    calls = _renames_failing(monkeypatch, lambda n: n == 2, OSError(13, "Permission denied"))
     with pytest.raises(InputError, match="the old bag is as it was") as ei, staged_replacement(out, "bag") as new:
         new.mkdir()
         (new / "new.db3").write_text("new")
@@ -203,16 +213,8 @@ def test_staged_replacement_never_deletes_the_old_output_when_it_cannot_be_moved
     out = tmp_path / "bag"
     out.mkdir()
     (out / "old.db3").write_text("old")
-    real_rename = os.rename
-    calls = []
-
-    def rename(src, dst):  # the first move (the old output aside) works, every later one fails
-        calls.append(dst)
-        if len(calls) > 1:
-            raise OSError(5, "Input/output error", str(src))
-        real_rename(src, dst)
-
-    monkeypatch.setattr(os, "rename", rename)
+    # the first move (the old output aside) works, every later one fails
+    _renames_failing(monkeypatch, lambda n: n > 1, OSError(5, "Input/output error"))
     with pytest.raises(InputError, match="nor the old one back") as ei, staged_replacement(out, "bag") as new:
         new.mkdir()
         (new / "new.db3").write_text("new")

@@ -266,16 +266,13 @@ def staged_output_dir(path: str | os.PathLike, overwrite: bool, what: str,
     is re-raised naming that file under ``path``.
     """
     out = check_output_dir(path, overwrite, what, inputs)
-    created = [d for d in out.absolute().parents if not d.exists()]
+    created = missing_dirs(out.parent)
     stage = _new_stage(out, what, created)
     try:
         yield stage
         _publish(stage, out)
     except BaseException as exc:
-        shutil.rmtree(stage, ignore_errors=True)
-        remove_empty_dirs(created)
-        if isinstance(exc, InputError | OSError):
-            _rename_staged(exc, stage, out)
+        _abandon_stage(exc, stage, created, stage, out)
         raise
 
 
@@ -302,10 +299,7 @@ def staged_replacement(path: str | os.PathLike, what: str) -> Iterator[Path]:
     try:
         yield new
     except BaseException as exc:
-        shutil.rmtree(stage, ignore_errors=True)
-        remove_empty_dirs(created)
-        if isinstance(exc, InputError | OSError):
-            _rename_staged(exc, new, path)
+        _abandon_stage(exc, stage, created, new, path)
         raise
     with _signals_held():
         _swap_in(new, path, stage, what)
@@ -323,6 +317,15 @@ def _new_stage(path: Path, what: str, created: list[Path]) -> Path:
         remove_empty_dirs(created)
         raise InputError(f"--out cannot be used for the {what}: {_os_problem(exc)}", file=path_text(path)) from None
     return stage
+
+
+def _abandon_stage(exc: BaseException, stage: Path, created: list[Path], written: Path, out: Path) -> None:
+    """After a failed write: remove the hidden ``stage`` and the parents made for it, and let ``exc`` name ``out``
+    where it named ``written`` (the output inside the stage: :func:`_rename_staged`)."""
+    shutil.rmtree(stage, ignore_errors=True)
+    remove_empty_dirs(created)
+    if isinstance(exc, InputError | OSError):
+        _rename_staged(exc, written, out)
 
 
 def _swap_in(new: Path, path: Path, stage: Path, what: str) -> None:

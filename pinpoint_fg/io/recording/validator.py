@@ -279,6 +279,24 @@ def _parse_pose(ctx: _RowContext, cols: tuple[str, ...], values: list[float]) ->
     return pose_from_xyz_quat(np.asarray(values[:3], dtype=float), q / norm)
 
 
+def _look_alikes(header: list[str]) -> dict[str, list[str]]:
+    """Each known column the header lacks -> the header's unknown columns that look like it (:mod:`.columns`)."""
+    meant: dict[str, list[str]] = {}
+    for u, k in near_miss_columns(header).items():
+        meant.setdefault(k, []).append(u)
+    return meant
+
+
+def _look_alike_hint(column: str, alikes: list[str]) -> str:
+    """The tail of a "required column missing" error naming ``alikes`` (up to three), and ``column``'s unit when one
+    of them states another ("" for none)."""
+    if not alikes:
+        return ""
+    unit = f" ({column} is in {unit_of(column)})" if any(differs_in_unit(u, column) for u in alikes) else ""
+    return (f"; the header's {', '.join(shown(u, 40) for u in alikes[:3])} look{'s' if len(alikes) == 1 else ''} "
+            f"like it{unit}")
+
+
 def _parse_frames(
     root: Path, csv_path: Path, info: RecordingInfo | None, errors: list[InputError], inflate: bool = True,
     header_out: list[str] | None = None,
@@ -326,18 +344,13 @@ def _parse_frames(
                             )
                         else:
                             col[name] = i
-                    meant: dict[str, list[str]] = {}  # known column -> the header's look-alikes of it
-                    for u, k in near_miss_columns(header).items():
-                        meant.setdefault(k, []).append(u)
+                    meant: dict[str, list[str]] | None = None  # known column -> the header's look-alikes of it
                     for gname, gcols in COLUMN_GROUPS.items():
                         missing = [c for c in gcols if c not in col]
                         if gname == "required" or (missing and len(missing) < len(gcols)):
                             for c in missing:
-                                like = "" if c not in meant else (
-                                    f"; the header's {', '.join(shown(u, 40) for u in meant[c][:3])} "
-                                    f"look{'s' if len(meant[c]) == 1 else ''} like it"
-                                    + (f" ({c} is in {unit_of(c)})" if any(differs_in_unit(u, c) for u in meant[c])
-                                       else ""))
+                                meant = _look_alikes(header) if meant is None else meant  # for an error only
+                                like = _look_alike_hint(c, meant.get(c, []))
                                 errors.append(
                                     InputError(
                                         f"header: required column missing (group {gname!r} needs "
